@@ -1,0 +1,28 @@
+# Set-up is part of every target: a fresh machine needs only python3 (>= 3.11) and make.
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: run test test-all bench clean
+
+$(STAMP): pyproject.toml constraints.txt
+	python3 -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[test]"
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(VENV)/bin/swarmpc run
+
+test: $(STAMP)
+	if [ -f scripts/install-browser.sh ]; then bash scripts/install-browser.sh; fi
+	$(PY) -m pytest
+
+test-all: $(STAMP)
+	$(PY) -m pytest -m ""
+
+bench: $(STAMP)
+	$(PY) benchmarks/admm_vs_centralized.py
+
+clean:
+	rm -rf $(VENV) results

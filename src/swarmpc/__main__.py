@@ -1,0 +1,5 @@
+"""``python -m swarmpc`` runs the command line."""
+
+from swarmpc.cli import main
+
+main()

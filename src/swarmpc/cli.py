@@ -1,0 +1,228 @@
+"""The ``swarmpc`` command line: run scenarios, list them, plot and animate run folders.
+
+Bad input never produces a traceback: it is one line on stderr naming the field, exit status 2,
+and no output folder.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from enum import Enum
+from pathlib import Path
+from types import FrameType
+from typing import Annotated, Any, NoReturn
+
+import typer
+
+from swarmpc.config import Scenario, ScenarioError, load_scenario
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=False,
+    help="Distributed MPC for robot swarms (consensus ADMM + OBCA collision avoidance).",
+    pretty_exceptions_enable=False,
+)
+
+
+class Method(str, Enum):
+    admm = "admm"
+    centralized = "centralized"
+
+
+class Collision(str, Enum):
+    hard = "hard"
+    soft = "soft"
+
+
+class Guess(str, Enum):
+    auto = "auto"
+    rrt = "rrt"
+    straight = "straight"
+    shifted = "shifted"
+
+
+def fail(message: str) -> NoReturn:
+    """One line on stderr, exit status 2."""
+    typer.echo(f"swarmpc: error: {message}", err=True)
+    raise typer.Exit(code=2)
+
+
+def resolve_scenario(name_or_file: str, **params: Any) -> Scenario:
+    """A built-in scenario by name, or a YAML file by path."""
+    from swarmpc.scenarios import BUILTINS, builtin_scenario
+
+    if name_or_file in BUILTINS:
+        return builtin_scenario(name_or_file, **params)
+    path = Path(name_or_file)
+    if path.suffix.lower() in (".yaml", ".yml") or path.exists():
+        return load_scenario(path)
+    raise ScenarioError(
+        f"scenario: {name_or_file!r} is neither a built-in ({', '.join(BUILTINS)}) nor a file"
+    )
+
+
+@app.command()
+def run(
+    scenario: Annotated[str, typer.Argument(help="built-in name or YAML file")] = "paper-2d",
+    out: Annotated[Path | None, typer.Option(help="output folder [results/<name>]")] = None,
+    method: Annotated[Method | None, typer.Option(help="solver (default: the scenario's, admm)")] = None,
+    collision: Annotated[Collision | None, typer.Option(help="OBCA form")] = None,
+    delta: Annotated[float | None, typer.Option(help="half-size of the box around each agent")] = None,
+    seed: Annotated[int | None, typer.Option(help="seed for random scenarios and RRT")] = None,
+    agents: Annotated[int | None, typer.Option(help="number of agents (circle, random)")] = None,
+    dim: Annotated[int | None, typer.Option(help="2 or 3 (circle, random)")] = None,
+    rho: Annotated[float | None, typer.Option(help="ADMM penalty")] = None,
+    admm_tol: Annotated[float | None, typer.Option(help="ADMM residual tolerance [m]")] = None,
+    admm_max_iter: Annotated[int | None, typer.Option(help="ADMM iteration cap per step")] = None,
+    initial_guess: Annotated[Guess | None, typer.Option(help="initial-guess strategy")] = None,
+    max_steps: Annotated[int | None, typer.Option(help="MPC steps at most")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar, no paragraph")] = False,
+) -> None:
+    """Run a scenario in closed loop and write summary.json, trajectory.npz and a figure."""
+    try:
+        params: dict[str, Any] = {"agents": agents, "dim": dim, "seed": seed}
+        scn = resolve_scenario(scenario, **params)
+        scn = scn.with_updates(
+            **{
+                "solver.method": method.value if method else None,
+                "collision": collision.value if collision else None,
+                "delta": delta,
+                "seed": seed,
+                "solver.rho": rho,
+                "solver.tol": admm_tol,
+                "solver.max_iter": admm_max_iter,
+                "solver.initial_guess": initial_guess.value if initial_guess else None,
+                "stop.max_steps": max_steps,
+            }
+        )
+    except ScenarioError as err:
+        fail(str(err))
+    target = out or Path("results") / scn.name
+    _run_and_write(scn, target, quiet)
+
+
+def _run_and_write(scn: Scenario, target: Path, quiet: bool) -> None:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from swarmpc.plots import plot_trajectories, load_run
+    from swarmpc.simulation.loop import StopFlag, simulate
+    from swarmpc.simulation.results import RunResult, write_run
+
+    stop = StopFlag()
+
+    def on_sigint(_signum: int, _frame: FrameType | None) -> None:
+        stop.requested = True
+
+    previous_handler = signal.signal(signal.SIGINT, on_sigint)
+    console = Console(stderr=True)
+    show = not quiet and console.is_terminal
+    try:
+        if show:
+            with Progress(
+                TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("step {task.completed}"),
+                TimeElapsedColumn(), console=console, transient=True,
+            ) as bar:
+                task = bar.add_task(f"{scn.name} ({scn.solver.method})", total=scn.stop.max_steps)
+                result = simulate(scn, progress=lambda k, _n, _s: bar.update(task, completed=k), stop_flag=stop)
+        else:
+            result = simulate(scn, stop_flag=stop)
+    finally:
+        signal.signal(signal.SIGINT, previous_handler)
+
+    def figure(run: RunResult, folder: Path) -> None:
+        plot_trajectories(load_run(folder), folder / "trajectory.png")
+
+    folder = write_run(result, target, extra_writers=[figure])
+    if not quiet:
+        typer.echo(result_paragraph(result.summary, folder))
+
+
+def result_paragraph(summary: dict[str, Any], folder: Path) -> str:
+    """The one-paragraph human summary printed at the end of a run."""
+    reached = sum(summary["reached"])
+    times = summary["step_time_ms"]
+    iterations = summary.get("admm_iterations")
+    admm = (
+        f" ADMM took {iterations['median']:.0f} iterations per step (median, max {iterations['max']})."
+        if iterations and iterations.get("median") is not None
+        else ""
+    )
+    sep = summary.get("min_separation_ratio")
+    sep_text = f"{sep:.2f}" if sep is not None else "n/a"
+    status = "interrupted; " if summary.get("interrupted") else ""
+    median = f"{times['median']:.1f}" if times["median"] is not None else "n/a"
+    p95 = f"{times['p95']:.1f}" if times["p95"] is not None else "n/a"
+    return (
+        f"{status}{summary['scenario']} ({summary['method']}, {summary['collision']}): "
+        f"{reached}/{summary['num_agents']} agents reached their goals in {summary['steps']} steps "
+        f"({summary['sim_time_s']:.1f} s simulated), {summary['collisions']} collisions, "
+        f"min separation {sep_text} x delta, closed-loop cost {summary['cost']:.1f}. "
+        f"Per-step solve time {median} ms median, {p95} ms p95.{admm} "
+        f"Solver failures: {summary['solver_failures']}, deadlocks resolved: {summary['deadlocks']}. "
+        f"Wrote {folder}/"
+    )
+
+
+@app.command()
+def scenarios() -> None:
+    """List the built-in scenarios."""
+    from swarmpc.scenarios import BUILTINS
+
+    width = max(len(name) for name in BUILTINS)
+    for name, (_factory, text) in BUILTINS.items():
+        typer.echo(f"{name:<{width}}  {text}")
+
+
+@app.command()
+def plot(run_dir: Annotated[Path, typer.Argument(help="a run folder")]) -> None:
+    """Write trajectory.png (and convergence.png for ADMM runs) into a run folder."""
+    from swarmpc.plots import RunDataError, plot_run
+
+    try:
+        for path in plot_run(run_dir):
+            typer.echo(str(path))
+    except (RunDataError, OSError) as err:
+        fail(str(err).splitlines()[0])
+
+
+@app.command()
+def animate(
+    run_dir: Annotated[Path, typer.Argument(help="a run folder")],
+    format: Annotated[str, typer.Option("--format", help="gif or mp4")] = "gif",
+    out: Annotated[Path | None, typer.Option(help="output file [RUN_DIR/animation.FORMAT]")] = None,
+) -> None:
+    """Animate a run: moving agents with their delta boxes, trails and a time stamp."""
+    from swarmpc.plots import AnimationWriterError, RunDataError
+    from swarmpc.plots import animate as write_animation
+    from swarmpc.plots import load_run
+
+    if format not in ("gif", "mp4"):
+        fail(f"--format: must be gif or mp4, got {format!r}")
+    try:
+        path = write_animation(load_run(run_dir), out or run_dir / f"animation.{format}", fmt=format)  # type: ignore[arg-type]
+    except (RunDataError, AnimationWriterError, OSError) as err:
+        fail(str(err).splitlines()[0])
+    typer.echo(str(path))
+
+
+def main() -> None:
+    """Console entry point: usage errors also exit with status 2 and one line."""
+    try:
+        code = app(standalone_mode=False)
+    except typer.Exit as exit_:
+        code = exit_.exit_code
+    except typer.Abort:
+        code = 130
+    except Exception as err:  # the CLI library's usage errors carry format_message()
+        format_message = getattr(err, "format_message", None)
+        if format_message is None:
+            raise
+        typer.echo(f"swarmpc: error: {format_message().splitlines()[0]}", err=True)
+        code = 2
+    sys.exit(code if isinstance(code, int) else 0)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Costs, OBCA constraints and the optimal-control problems, built in CasADi."""

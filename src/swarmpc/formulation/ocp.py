@@ -1,0 +1,269 @@
+"""Optimal-control problems in CasADi: costs, OBCA collision constraints, global and local OCPs.
+
+Collision avoidance follows OBCA (Zhang, Liniger, Borrelli 2017). Against a polytope
+{p : G p <= g} a point p keeps Euclidean distance >= d_min iff a certificate lambda >= 0 exists with
+
+* hard:  (G p - g)^T lambda >= d_min,        ||G^T lambda||_2 <= 1;
+* soft:  (G p - g)^T lambda >= d_min - alpha, ||G^T lambda||_2 = 1, alpha >= 0, kappa*alpha in cost.
+
+Two traps of the paper's statement are designed around (design.md section 9):
+
+* d_min = 0 in the hard form excludes nothing (lambda = 0 satisfies it). The hard form here always
+  has d_min > 0 (validated; default 0.05 m).
+* With Euler steps p(1) = p(0) + dt v(0) is fixed by the measured state, so a constraint at k = 1
+  has no free variable. Collision constraints start at k = 2 for Euler (k = 1 was enforced as k = 2
+  of the previous solve) and at k = 1 for the exact zero-order hold, where p(1) depends on u(0).
+
+Every builder runs once per problem shape; everything that changes between calls (states, goals,
+delta, consensus targets, multipliers, rho) is a parameter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from swarmpc.config import Scenario
+from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder
+from swarmpc.model.dynamics import discrete_matrices
+
+
+@dataclass(frozen=True)
+class OCPSettings:
+    """Everything that fixes the shape and constants of an agent's OCP."""
+
+    dim: int
+    horizon: int
+    dt: float
+    discretization: str
+    Q: np.ndarray
+    R: np.ndarray
+    Qf: np.ndarray
+    collision: str
+    d_min: float
+    kappa: float
+    lower: np.ndarray | None
+    upper: np.ndarray | None
+    accel: np.ndarray | None
+    speed: float | None
+    obstacles: tuple[tuple[np.ndarray, np.ndarray], ...]
+
+    @classmethod
+    def from_scenario(cls, scn: Scenario) -> OCPSettings:
+        accel = None
+        if scn.limits.accel is not None:
+            accel = np.broadcast_to(np.asarray(scn.limits.accel, float), (scn.dim,)).copy()
+        lower = upper = None
+        if scn.workspace is not None:
+            lower, upper = scn.bounds()
+        return cls(
+            dim=scn.dim,
+            horizon=scn.horizon,
+            dt=scn.dt,
+            discretization=scn.discretization,
+            Q=scn.matrix("Q"),
+            R=scn.matrix("R"),
+            Qf=scn.matrix("Qf"),
+            collision=scn.collision,
+            d_min=scn.d_min,
+            kappa=scn.kappa,
+            lower=lower,
+            upper=upper,
+            accel=accel,
+            speed=scn.limits.speed,
+            obstacles=tuple(scn.obstacle_halfspaces()),
+        )
+
+    @property
+    def first_constrained_step(self) -> int:
+        """First horizon step with a free position: 2 for Euler, 1 for zero-order hold."""
+        return 2 if self.discretization == "euler" else 1
+
+    @property
+    def num_constrained(self) -> int:
+        return self.horizon + 1 - self.first_constrained_step
+
+
+IPOPT_OPTIONS = {
+    "expand": True,
+    "print_time": False,
+    "ipopt.print_level": 0,
+    "ipopt.sb": "yes",
+    "ipopt.max_iter": 300,
+    "ipopt.tol": 1e-6,
+    "ipopt.acceptable_tol": 1e-4,
+    "ipopt.mu_strategy": "adaptive",
+}
+
+
+def quadratic_cost(X: ca.SX, U: ca.SX, goal: ca.SX, s: OCPSettings) -> ca.SX:
+    """Paper eq. (3): sum_k (s_k - s_g)' Q (s_k - s_g) + u_k' R u_k + (s_N - s_g)' Qf (s_N - s_g)."""
+    cost = ca.SX(0)
+    for k in range(s.horizon):
+        err = X[:, k] - goal
+        cost += ca.mtimes([err.T, s.Q, err]) + ca.mtimes([U[:, k].T, s.R, U[:, k]])
+    err = X[:, s.horizon] - goal
+    return cost + ca.mtimes([err.T, s.Qf, err])
+
+
+def add_trajectory(builder: ProblemBuilder, tag: str, s: OCPSettings) -> tuple[ca.SX, ca.SX]:
+    """A dynamically feasible trajectory: parameter ``x0{tag}``, variables ``X{tag}`` (2d, N+1) and
+    ``U{tag}`` (d, N) with the dynamics, workspace, acceleration and speed limits; returns (X, U)."""
+    d, N = s.dim, s.horizon
+    A, B = discrete_matrices(d, s.dt, s.discretization)  # type: ignore[arg-type]
+    lbx = np.full((2 * d, N + 1), -np.inf)
+    ubx = np.full((2 * d, N + 1), np.inf)
+    if s.lower is not None and s.upper is not None:
+        first = s.first_constrained_step
+        lbx[:d, first:] = s.lower[:, None]
+        ubx[:d, first:] = s.upper[:, None]
+    amax = s.accel if s.accel is not None else np.full(d, np.inf)
+    x0 = builder.parameter(f"x0{tag}", 2 * d)
+    X = builder.variable(f"X{tag}", 2 * d, N + 1, lbx, ubx)
+    U = builder.variable(f"U{tag}", d, N, -amax[:, None], amax[:, None])
+    builder.constrain(f"init{tag}", X[:, 0] - x0, 0.0, 0.0)
+    builder.constrain(f"dyn{tag}", X[:, 1:] - (ca.mtimes(A, X[:, :-1]) + ca.mtimes(B, U)), 0.0, 0.0)
+    if s.speed is not None:
+        speed_sq = ca.sum1(X[d:, 1:] ** 2)
+        builder.constrain(f"speed{tag}", speed_sq, -np.inf, s.speed**2)
+    return X, U
+
+
+def add_agent(builder: ProblemBuilder, tag: str, s: OCPSettings) -> tuple[ca.SX, ca.SX]:
+    """One agent: its trajectory (:func:`add_trajectory`), parameter ``goal{tag}``, its quadratic
+    cost and OBCA against every static obstacle; returns (X, U)."""
+    X, U = add_trajectory(builder, tag, s)
+    goal = builder.parameter(f"goal{tag}", 2 * s.dim)
+    builder.cost += quadratic_cost(X, U, goal, s)
+    for n, (G, g) in enumerate(s.obstacles):
+        positions = X[: s.dim, s.first_constrained_step :]
+        add_polytope_avoidance(builder, f"{tag}_o{n}", positions, G, g, s)
+    return X, U
+
+
+def certificate_terms(offsets: ca.SX, lam: ca.SX, half_size: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """(G q - g)^T lambda and ||G^T lambda||^2 for the box G = [I; -I], g = [half; half].
+
+    ``offsets`` q = p_i - p_j is (d, K), ``lam`` (2d, K); both results are (1, K).
+    """
+    d = offsets.shape[0]
+    direction = lam[:d, :] - lam[d:, :]
+    size = lam[:d, :] + lam[d:, :]
+    margin = ca.sum1(offsets * direction) - ca.sum1(size * ca.repmat(half_size, 1, offsets.shape[1]))
+    return margin, ca.sum1(direction**2)
+
+
+def add_certificate(
+    builder: ProblemBuilder,
+    tag: str,
+    margin: ca.SX,
+    norm_sq: ca.SX,
+    s: OCPSettings,
+    relax: ca.SX | float = 0.0,
+) -> None:
+    """Impose the hard or soft OBCA condition on precomputed (margin, ||G^T lambda||^2) rows.
+
+    ``relax`` is added to the margin; a large value switches the condition off (an unused slot).
+    """
+    if s.collision == "hard":
+        builder.constrain(f"sep{tag}", margin + relax, s.d_min, np.inf)
+        builder.constrain(f"norm{tag}", norm_sq, -np.inf, 1.0)
+    else:
+        slack = builder.variable(f"A{tag}", 1, margin.shape[1], 0.0, np.inf)
+        builder.constrain(f"sep{tag}", margin + slack + relax, s.d_min, np.inf)
+        builder.constrain(f"norm{tag}", norm_sq, 1.0, 1.0)
+        builder.cost += s.kappa * ca.sum2(slack)
+
+
+def add_pair_avoidance(
+    builder: ProblemBuilder, tag: str, offsets: ca.SX, half_size: ca.SX, s: OCPSettings
+) -> None:
+    """OBCA between two agents: point offset q against the box of half-size delta.
+
+    Declares certificate ``L{tag}`` (2d, K) and, in the soft form, slack ``A{tag}`` (1, K).
+    """
+    lam = builder.variable(f"L{tag}", 2 * s.dim, offsets.shape[1], 0.0, np.inf)
+    margin, norm_sq = certificate_terms(offsets, lam, half_size)
+    add_certificate(builder, tag, margin, norm_sq, s)
+
+
+def add_polytope_avoidance(
+    builder: ProblemBuilder, tag: str, positions: ca.SX, G: np.ndarray, g: np.ndarray, s: OCPSettings
+) -> None:
+    """OBCA against a static polytope for positions (d, K); certificate ``L{tag}`` (rows of G, K)."""
+    lam = builder.variable(f"L{tag}", G.shape[0], positions.shape[1], 0.0, np.inf)
+    margin, norm_sq = polytope_certificate_terms(positions, lam, G, g)
+    add_certificate(builder, tag, margin, norm_sq, s)
+
+
+def polytope_certificate_terms(
+    positions: ca.SX, lam: ca.SX, G: np.ndarray, g: np.ndarray
+) -> tuple[ca.SX, ca.SX]:
+    """(G p - g)^T lambda and ||G^T lambda||^2 per column of positions (d, K), lambda (rows, K)."""
+    K = positions.shape[1]
+    margin = ca.sum1((ca.mtimes(G, positions) - ca.repmat(g, 1, K)) * lam)
+    return margin, ca.sum1(ca.mtimes(G.T, lam) ** 2)
+
+
+def pair_tag(i: int, j: int) -> str:
+    return f"{i}_{j}"
+
+
+def build_centralized(s: OCPSettings, num_agents: int, options: dict | None = None) -> CompiledNLP:
+    """The global OCP: every agent's cost summed, every pair (i < j) coupled by OBCA."""
+    builder = ProblemBuilder()
+    half = builder.parameter("delta", s.dim)
+    first = s.first_constrained_step
+    trajectories = [add_agent(builder, str(i), s) for i in range(num_agents)]
+    for i in range(num_agents):
+        for j in range(i + 1, num_agents):
+            offsets = trajectories[i][0][: s.dim, first:] - trajectories[j][0][: s.dim, first:]
+            add_pair_avoidance(builder, pair_tag(i, j), offsets, half, s)
+    return builder.build(f"central_{num_agents}", "ipopt", {**IPOPT_OPTIONS, **(options or {})})
+
+
+def build_local(
+    s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict | None = None
+) -> CompiledNLP:
+    """Agent i's ADMM subproblem with ``num_copies`` local copies of other agents.
+
+    Variables: own trajectory (``X``, ``U``), copies of the others' positions at the constrained
+    steps, certificates ``L{c}``. Copies are either free positions ``C{c}`` (d, K) or, with
+    ``dynamic_copies``, whole trajectories ``Xc{c}``/``Uc{c}`` from the neighbour's measured state
+    ``x0c{c}`` obeying its dynamics and limits. Only the own trajectory is ever applied. Parameters: ``x0``, ``goal``, ``delta``, ``rho``, the consensus targets ``Z`` (own)
+    and ``Z{c}``, the scaled multipliers ``Y`` and ``Y{c}`` (gamma), and ``active{c}`` in {0, 1}
+    (an inactive copy slot is unconstrained and costs nothing, so one built solver serves every
+    neighbour count up to ``num_copies``).
+
+    Local objective (paper eq. 16): own cost + sum_b gamma_b'(v_b - z_b) + rho/2 ||v_b - z_b||^2.
+    """
+    builder = ProblemBuilder()
+    d, K, first = s.dim, s.num_constrained, s.first_constrained_step
+    half = builder.parameter("delta", d)
+    rho = builder.parameter("rho", 1)
+    X, _ = add_agent(builder, "", s)
+    own = X[:d, first:]
+    z_own = builder.parameter("Z", d, K)
+    y_own = builder.parameter("Y", d, K)
+    builder.cost += consensus_penalty(own, z_own, y_own, rho)
+    for c in range(num_copies):
+        if dynamic_copies:
+            copy = add_trajectory(builder, f"c{c}", s)[0][:d, first:]
+        else:
+            copy = builder.variable(f"C{c}", d, K)
+        z = builder.parameter(f"Z{c}", d, K)
+        y = builder.parameter(f"Y{c}", d, K)
+        active = builder.parameter(f"active{c}", 1)
+        builder.cost += active * consensus_penalty(copy, z, y, rho) + (1 - active) * ca.sumsqr(copy - z)
+        lam = builder.variable(f"L{c}", 2 * d, K, 0.0, np.inf)
+        margin, norm_sq = certificate_terms(own - copy, lam, half)
+        add_certificate(builder, str(c), margin, norm_sq, s, relax=(1 - active) * 1e3)
+    return builder.build(f"local_{num_copies}_{int(dynamic_copies)}", "ipopt", {**IPOPT_OPTIONS, **(options or {})})
+
+
+def consensus_penalty(v: ca.SX, z: ca.SX, y: ca.SX, rho: ca.SX) -> ca.SX:
+    """gamma'(v - z) + rho/2 ||v - z||^2 over a (d, K) block."""
+    diff = v - z
+    return ca.sum1(ca.sum2(y * diff)) + 0.5 * rho * ca.sumsqr(diff)

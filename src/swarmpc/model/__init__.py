@@ -1,0 +1,1 @@
+"""Dynamics and geometry: the bottom layer, plain numpy."""

@@ -1,0 +1,930 @@
+"""Figures and animations of a finished run folder.
+
+Reads what a run writes (``trajectory.npz``, ``summary.json``, ``scenario.yaml`` and, for ADMM
+runs, ``admm.npz``) and draws the paper's figures: the trajectories with the agents' boxes and the
+obstacles (Fig. 3), the ADMM residuals per iteration (Fig. 4) and an animation.
+
+Only the object-oriented matplotlib API is used (:class:`~matplotlib.figure.Figure` with an Agg
+canvas), never :mod:`matplotlib.pyplot`: no window opens, no backend is switched and no figure
+lingers in a global registry after it is saved.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from matplotlib import animation, colormaps
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch, Polygon, Rectangle
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+from scipy.optimize import linprog
+from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
+
+from swarmpc.config import Scenario, load_scenario
+from swarmpc.model.geometry import count_collisions, inf_separation_ratio
+
+PathLike = str | os.PathLike[str]
+
+DPI = 120
+"""Resolution of the saved PNG figures."""
+ANIMATION_DPI = 80
+TRAIL_SECONDS = 1.5
+MAX_FPS = 20.0
+OBSTACLE_COLOR = "0.55"
+AXIS_NAMES = ("x", "y", "z")
+GID_OBSTACLE = "obstacle"
+GID_TOLERANCE = "tolerance"
+
+
+class RunDataError(ValueError):
+    """A run folder that cannot be plotted; the message is one line naming the file."""
+
+
+class MissingRunFileError(RunDataError, FileNotFoundError):
+    """A run folder lacks a required file (``trajectory.npz`` or ``scenario.yaml``)."""
+
+
+class AnimationWriterError(RuntimeError):
+    """The requested animation format needs a tool that is not installed."""
+
+
+# --------------------------------------------------------------------------------- run data
+@dataclass(frozen=True, eq=False)
+class AdmmResiduals:
+    """ADMM residual histories of a run.
+
+    Attributes
+    ----------
+    primal, dual : np.ndarray
+        (steps, max_iter) residual per MPC step and ADMM iteration, NaN after convergence.
+    iterations : np.ndarray
+        (steps,) number of ADMM iterations of each MPC step.
+    """
+
+    primal: np.ndarray
+    dual: np.ndarray
+    iterations: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RunData:
+    """Everything a run folder holds, as read-only arrays.
+
+    Attributes
+    ----------
+    run_dir : Path
+        The folder the run was loaded from.
+    t : np.ndarray
+        (T+1,) time stamps [s].
+    states : np.ndarray
+        (T+1, M, 2d) states [position, velocity].
+    inputs : np.ndarray
+        (T, M, d) accelerations.
+    goals : np.ndarray
+        (M, 2d) goal states.
+    delta : np.ndarray
+        (d,) half-size of the box around each agent, per axis.
+    dt : float
+        Sampling time [s].
+    scenario : Scenario
+        The fully resolved scenario of the run.
+    summary : dict
+        ``summary.json`` (empty when the file is absent).
+    admm : AdmmResiduals or None
+        Residual histories from ``admm.npz``; None when the run has none.
+    disturbances : np.ndarray or None
+        (T, M, 2d) additive disturbances when the run recorded them.
+    """
+
+    run_dir: Path
+    t: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    goals: np.ndarray
+    delta: np.ndarray
+    dt: float
+    scenario: Scenario
+    summary: dict[str, Any]
+    admm: AdmmResiduals | None = None
+    disturbances: np.ndarray | None = None
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension d (2 or 3)."""
+        return self.scenario.dim
+
+    @property
+    def num_agents(self) -> int:
+        """Number of agents M."""
+        return int(self.states.shape[1])
+
+    @property
+    def num_steps(self) -> int:
+        """Number of closed-loop steps T (the run has T+1 states)."""
+        return int(self.states.shape[0]) - 1
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(T+1, M, d) positions."""
+        return self.states[:, :, : self.dim]
+
+    @property
+    def name(self) -> str:
+        """Scenario name."""
+        return str(self.summary.get("scenario", self.scenario.name))
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.array(array, dtype=float)
+    array.setflags(write=False)
+    return array
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: np.asarray(data[key]) for key in data.files}
+    except (OSError, ValueError) as err:
+        raise RunDataError(f"{path}: cannot read ({err.__class__.__name__}: {err})") from None
+
+
+def _load_admm(path: Path) -> AdmmResiduals | None:
+    if not path.is_file():
+        return None
+    data = _read_npz(path)
+    for key in ("primal", "dual"):
+        if key not in data:
+            raise RunDataError(f"{path}: missing array '{key}'")
+    primal = np.atleast_2d(data["primal"]).astype(float)
+    dual = np.atleast_2d(data["dual"]).astype(float)
+    if primal.shape != dual.shape:
+        raise RunDataError(f"{path}: 'primal' {primal.shape} and 'dual' {dual.shape} differ in shape")
+    if "iterations" in data:
+        iterations = np.asarray(data["iterations"], float).reshape(-1)
+    else:
+        iterations = np.sum(np.isfinite(primal), axis=1).astype(float)
+    if iterations.shape != (primal.shape[0],):
+        raise RunDataError(f"{path}: 'iterations' has {iterations.size} entries for {primal.shape[0]} steps")
+    return AdmmResiduals(_frozen(primal), _frozen(dual), _frozen(iterations))
+
+
+def load_run(run_dir: PathLike) -> RunData:
+    """Load a run folder.
+
+    Parameters
+    ----------
+    run_dir : str or PathLike
+        Folder with ``trajectory.npz`` and ``scenario.yaml`` (required), ``summary.json`` and
+        ``admm.npz`` (optional).
+
+    Returns
+    -------
+    RunData
+
+    Raises
+    ------
+    MissingRunFileError
+        When the folder or one of its required files does not exist (a ``ValueError`` and a
+        ``FileNotFoundError``; the message names the missing file).
+    RunDataError
+        When a file is unreadable or its arrays have inconsistent shapes.
+    """
+    folder = Path(run_dir)
+    if not folder.is_dir():
+        raise MissingRunFileError(f"{folder}: no such run folder")
+    for required in ("trajectory.npz", "scenario.yaml"):
+        if not (folder / required).is_file():
+            raise MissingRunFileError(f"{folder}: missing {required} (is this a run folder?)")
+    scenario = load_scenario(folder / "scenario.yaml")
+    dim = scenario.dim
+    traj_path = folder / "trajectory.npz"
+    data = _read_npz(traj_path)
+    for key in ("t", "states"):
+        if key not in data:
+            raise RunDataError(f"{traj_path}: missing array '{key}'")
+    states = np.asarray(data["states"], float)
+    if states.ndim != 3 or states.shape[2] != 2 * dim or states.shape[0] < 1:
+        raise RunDataError(f"{traj_path}: 'states' must be (T+1, M, {2 * dim}) for dim {dim}, got {states.shape}")
+    steps, m = states.shape[0] - 1, states.shape[1]
+    t = np.asarray(data["t"], float).reshape(-1)
+    if t.shape != (steps + 1,):
+        raise RunDataError(f"{traj_path}: 't' has {t.size} entries for {steps + 1} states")
+    inputs = np.asarray(data.get("inputs", np.full((steps, m, dim), np.nan)), float)
+    if inputs.shape != (steps, m, dim):
+        raise RunDataError(f"{traj_path}: 'inputs' must be {(steps, m, dim)}, got {inputs.shape}")
+    goals = np.asarray(data.get("goals", scenario.goal_states()), float)
+    if goals.shape == (m, dim):
+        goals = np.hstack([goals, np.zeros((m, dim))])
+    if goals.shape != (m, 2 * dim):
+        raise RunDataError(f"{traj_path}: 'goals' must be {(m, 2 * dim)}, got {goals.shape}")
+    delta = np.asarray(data.get("delta", scenario.delta_vector), float)
+    try:
+        delta = np.broadcast_to(delta, (dim,)).copy()
+    except ValueError:
+        raise RunDataError(f"{traj_path}: 'delta' must be a scalar or {dim} values, got {delta.shape}") from None
+    dt = float(np.asarray(data.get("dt", scenario.dt)))
+    disturbances = data.get("disturbances")
+    summary: dict[str, Any] = {}
+    summary_path = folder / "summary.json"
+    if summary_path.is_file():
+        try:
+            summary = json.loads(summary_path.read_text())
+        except (OSError, ValueError) as err:
+            raise RunDataError(f"{summary_path}: cannot read ({err.__class__.__name__})") from None
+        if not isinstance(summary, dict):
+            raise RunDataError(f"{summary_path}: expected a JSON object")
+    return RunData(
+        run_dir=folder,
+        t=_frozen(t),
+        states=_frozen(states),
+        inputs=_frozen(inputs),
+        goals=_frozen(goals),
+        delta=_frozen(delta),
+        dt=dt,
+        scenario=scenario,
+        summary=summary,
+        admm=_load_admm(folder / "admm.npz"),
+        disturbances=None if disturbances is None else _frozen(disturbances),
+    )
+
+
+# --------------------------------------------------------------------------------- geometry
+def agent_colors(m: int) -> list[tuple[float, float, float, float]]:
+    """One RGBA colour per agent: ``tab10`` for up to 10 agents, ``turbo`` samples beyond.
+
+    Parameters
+    ----------
+    m : int
+        Number of agents.
+
+    Returns
+    -------
+    list of RGBA tuples
+        The same agent gets the same colour in every figure of this module.
+    """
+    if m <= 0:
+        return []
+    if m <= 10:
+        return [tuple(float(c) for c in colormaps["tab10"](i)) for i in range(m)]
+    samples = colormaps["turbo"](np.linspace(0.05, 0.95, m))
+    return [tuple(float(c) for c in row) for row in samples]
+
+
+def polytope_vertices(
+    G: np.ndarray, g: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
+    """Vertices of the polytope {p : G p <= g}, optionally clipped to an axis-aligned box.
+
+    Parameters
+    ----------
+    G : np.ndarray
+        (k, d) face normals.
+    g : np.ndarray
+        (k,) offsets.
+    bounds : (lower, upper), optional
+        Clip to this box; needed when the set is unbounded.
+
+    Returns
+    -------
+    np.ndarray
+        (n, d) vertices of the convex hull, (0, d) when the set is empty or flat.
+
+    Raises
+    ------
+    ValueError
+        When the set is unbounded and no ``bounds`` are given, or the shapes disagree.
+    """
+    G = np.atleast_2d(np.asarray(G, float))
+    g = np.asarray(g, float).reshape(-1)
+    d = G.shape[1]
+    if G.shape[0] != g.size:
+        raise ValueError(f"G has {G.shape[0]} rows but g has {g.size} entries")
+    if bounds is not None:
+        lower = np.broadcast_to(np.asarray(bounds[0], float), (d,))
+        upper = np.broadcast_to(np.asarray(bounds[1], float), (d,))
+        eye = np.eye(d)
+        G = np.vstack([G, eye, -eye])
+        g = np.concatenate([g, upper, -lower])
+    norms = np.linalg.norm(G, axis=1)
+    if np.any(norms == 0):
+        raise ValueError("G has a zero row")
+    A, b = G / norms[:, None], g / norms
+    # Chebyshev centre: max r  s.t.  a_i^T x + r <= b_i  (rows of A have unit norm).
+    cost = np.zeros(d + 1)
+    cost[-1] = -1.0
+    lp = linprog(
+        cost,
+        A_ub=np.hstack([A, np.ones((len(b), 1))]),
+        b_ub=b,
+        bounds=[(None, None)] * d + [(0, None)],
+        method="highs",
+    )
+    if lp.status == 3:
+        raise ValueError("the polytope is unbounded: pass bounds to clip it")
+    if lp.status != 0 or lp.x[-1] <= 1e-9:
+        return np.empty((0, d))
+    if bounds is None:
+        for direction in np.vstack([np.eye(d), -np.eye(d)]):  # bounded iff every extent is finite
+            extent = linprog(-direction, A_ub=A, b_ub=b, bounds=[(None, None)] * d, method="highs")
+            if extent.status == 3:
+                raise ValueError("the polytope is unbounded: pass bounds to clip it")
+    try:
+        points = HalfspaceIntersection(np.hstack([A, -b[:, None]]), lp.x[:d]).intersections
+        hull = ConvexHull(points)
+    except QhullError:
+        return np.empty((0, d))
+    return hull.points[hull.vertices]
+
+
+def polygon_vertices_2d(
+    G: np.ndarray, g: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
+    """Vertices of the 2D polygon {p : G p <= g} in counter-clockwise order.
+
+    Parameters
+    ----------
+    G : np.ndarray
+        (k, 2) face normals.
+    g : np.ndarray
+        (k,) offsets.
+    bounds : (lower, upper), optional
+        Clip to this rectangle; needed when the set is unbounded.
+
+    Returns
+    -------
+    np.ndarray
+        (n, 2) vertices, counter-clockwise; (0, 2) when the set is empty or flat.
+    """
+    G = np.atleast_2d(np.asarray(G, float))
+    if G.shape[1] != 2:
+        raise ValueError(f"G must have 2 columns, got {G.shape[1]}")
+    return polytope_vertices(G, g, bounds)  # scipy's 2D hull lists vertices counter-clockwise
+
+
+def _project_outline(vertices: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
+    """Counter-clockwise outline of the projection of a convex point set onto two axes."""
+    points = vertices[:, list(axes)]
+    if len(points) < 3:
+        return np.empty((0, 2))
+    try:
+        hull = ConvexHull(points)
+    except QhullError:
+        return np.empty((0, 2))
+    return points[hull.vertices]
+
+
+def _hull_faces(vertices: np.ndarray) -> list[np.ndarray]:
+    """The planar faces of a 3D convex hull, each an ordered (k, 3) vertex loop."""
+    try:
+        hull = ConvexHull(vertices)
+    except QhullError:
+        return []
+    groups: dict[tuple[float, ...], set[int]] = {}
+    for simplex, equation in zip(hull.simplices, hull.equations):
+        key = tuple(np.round(equation, 6) + 0.0)
+        groups.setdefault(key, set()).update(int(i) for i in simplex)
+    faces = []
+    for key, indices in groups.items():
+        normal = np.asarray(key[:3])
+        loop = hull.points[sorted(indices)]
+        centre = loop.mean(axis=0)
+        u = loop[0] - centre
+        u /= np.linalg.norm(u)
+        v = np.cross(normal, u)
+        rel = loop - centre
+        faces.append(loop[np.argsort(np.arctan2(rel @ v, rel @ u))])
+    return faces
+
+
+# --------------------------------------------------------------------------------- helpers
+def _even_indices(count: int, n: int) -> np.ndarray:
+    """``min(n, count)`` distinct, increasing, evenly spread indices in [0, count) with both ends."""
+    if count <= 0 or n <= 0:
+        return np.zeros(0, int)
+    n = min(n, count)
+    if n == 1:
+        return np.zeros(1, int)
+    # floor(x + 0.5) is monotone with unit steps, so spacing >= 1 keeps the indices distinct.
+    return np.floor(np.linspace(0, count - 1, n) + 0.5).astype(int)
+
+
+def frame_indices(num_states: int, max_frames: int) -> np.ndarray:
+    """The state indices an animation shows: ``min(num_states, max_frames)`` evenly spread ones.
+
+    Parameters
+    ----------
+    num_states : int
+        Number of recorded states (T+1).
+    max_frames : int
+        Frame cap.
+
+    Returns
+    -------
+    np.ndarray
+        Increasing distinct indices including the first and the last state.
+    """
+    return _even_indices(num_states, max_frames)
+
+
+def _view_limits(run: RunData) -> tuple[np.ndarray, np.ndarray]:
+    """Axis limits covering the workspace (or scenario bounds), the paths and the goals."""
+    lower, upper = run.scenario.bounds()
+    pos = run.positions.reshape(-1, run.dim)
+    goals = run.goals[:, : run.dim]
+    lower = np.minimum(lower, np.minimum(pos.min(axis=0), goals.min(axis=0)) - run.delta)
+    upper = np.maximum(upper, np.maximum(pos.max(axis=0), goals.max(axis=0)) + run.delta)
+    pad = 0.04 * (upper - lower).max()
+    return lower - pad, upper + pad
+
+
+def _obstacle_vertices(run: RunData) -> list[np.ndarray]:
+    """Vertices of each obstacle, clipped well outside the view so cut edges stay hidden."""
+    lower, upper = _view_limits(run)
+    margin = 0.5 * (upper - lower).max()
+    out = []
+    for G, g in run.scenario.obstacle_halfspaces():
+        vertices = polytope_vertices(G, g, (lower - margin, upper + margin))
+        if len(vertices):
+            out.append(vertices)
+    return out
+
+
+def _headline(run: RunData) -> str:
+    """Title: scenario, method and the safety numbers of the run."""
+    s = run.summary
+    method = s.get("method", run.scenario.solver.method)
+    collision = s.get("collision", run.scenario.collision)
+    first = f"{run.name}  ({method}, {collision} constraints, {run.num_agents} agents, {run.dim}D)"
+    ratio = inf_separation_ratio(run.positions, run.delta).min() if run.num_agents > 1 else np.inf
+    collisions = s.get("collisions")
+    if collisions is None:
+        collisions = count_collisions(run.positions, run.delta)
+    sep = f"{ratio:.2f}" if np.isfinite(ratio) else "n/a"
+    parts = [f"collisions: {collisions}", rf"min $\|p_i - p_j\|_\infty/\delta$ = {sep}"]
+    reached = s.get("reached")
+    if isinstance(reached, list):
+        parts.append(f"reached: {sum(bool(r) for r in reached)}/{run.num_agents}")
+    elif isinstance(reached, (int, float)) and not isinstance(reached, bool):
+        parts.append(f"reached: {int(reached)}/{run.num_agents}")
+    elif "all_reached" in s:
+        parts.append("all reached" if s["all_reached"] else "not all reached")
+    parts.append(f"T = {run.t[-1] - run.t[0]:.1f} s")
+    return first + "\n" + "   ·   ".join(parts)
+
+
+def _new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:
+    fig = Figure(figsize=(width, height), layout=layout)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: PathLike, dpi: int = DPI) -> Path:
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi, format="png")
+    fig.clear()
+    return out
+
+
+def _draw_static_planar(ax: Axes, run: RunData, axes: tuple[int, int], obstacles: list[np.ndarray]) -> None:
+    """Obstacles, workspace rectangle, limits, aspect and labels of a 2D (projected) view."""
+    for vertices in obstacles:
+        outline = _project_outline(vertices, axes)
+        if len(outline):
+            ax.add_patch(
+                Polygon(outline, closed=True, facecolor=OBSTACLE_COLOR, edgecolor="0.3",
+                        linewidth=0.8, alpha=0.85, zorder=1, gid=GID_OBSTACLE)
+            )
+    workspace = run.scenario.workspace
+    if workspace is not None:
+        lo = np.asarray(workspace.lower)[list(axes)]
+        hi = np.asarray(workspace.upper)[list(axes)]
+        ax.add_patch(
+            Rectangle(tuple(lo), *(hi - lo), fill=False, edgecolor="0.2", linestyle="--",
+                      linewidth=1.0, zorder=0, gid="workspace")
+        )
+    lower, upper = _view_limits(run)
+    ax.set_xlim(lower[axes[0]], upper[axes[0]])
+    ax.set_ylim(lower[axes[1]], upper[axes[1]])
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel(f"{AXIS_NAMES[axes[0]]} [m]")
+    ax.set_ylabel(f"{AXIS_NAMES[axes[1]]} [m]")
+    ax.grid(True, linewidth=0.4, alpha=0.4)
+
+
+def _box_patch(center: np.ndarray, half: np.ndarray, color: Any, alpha: float, **kwargs: Any) -> Rectangle:
+    return Rectangle(tuple(center - half), 2 * half[0], 2 * half[1], facecolor=color, edgecolor=color,
+                     alpha=alpha, linewidth=0.8, **kwargs)
+
+
+def _draw_paths_planar(
+    ax: Axes, run: RunData, axes: tuple[int, int], colors: list[Any], snapshots: int
+) -> None:
+    """Paths, start circles, goal stars and snapshot boxes of every agent, projected on ``axes``."""
+    pos = run.positions[:, :, list(axes)]
+    goals = run.goals[:, list(axes)]
+    half = run.delta[list(axes)]
+    instants = _even_indices(run.num_steps + 1, snapshots)
+    alphas = np.linspace(0.10, 0.28, max(len(instants), 1))
+    for i, color in enumerate(colors):
+        for k, alpha in zip(instants, alphas):
+            ax.add_patch(_box_patch(pos[k, i], half, color, float(alpha), zorder=2))
+        ax.plot(pos[:, i, 0], pos[:, i, 1], color=color, linewidth=1.6, zorder=3, label=f"agent {i}")
+        ax.plot(*pos[0, i], "o", color=color, markeredgecolor="k", markersize=7, zorder=4)
+        ax.plot(*goals[i], "*", color=color, markeredgecolor="k", markersize=13, zorder=4)
+
+
+def _legend_handles(run: RunData, colors: list[Any], obstacles: bool) -> list[Any]:
+    handles: list[Any] = []
+    if len(colors) <= 10:
+        handles += [Line2D([], [], color=c, linewidth=1.6, label=f"agent {i}") for i, c in enumerate(colors)]
+    handles += [
+        Line2D([], [], marker="o", linestyle="", color="0.8", markeredgecolor="k", label="start"),
+        Line2D([], [], marker="*", linestyle="", color="0.8", markeredgecolor="k", markersize=12, label="goal"),
+        Patch(facecolor="0.6", edgecolor="0.6", alpha=0.3, label=r"box $\pm\delta$ (snapshots)"),
+    ]
+    if obstacles:
+        handles.append(Patch(facecolor=OBSTACLE_COLOR, edgecolor="0.3", label="obstacle"))
+    if run.scenario.workspace is not None:
+        handles.append(Line2D([], [], color="0.2", linestyle="--", label="workspace"))
+    return handles
+
+
+def _set_3d_view(ax: Any, run: RunData) -> None:
+    lower, upper = _view_limits(run)
+    ax.set_xlim(lower[0], upper[0])
+    ax.set_ylim(lower[1], upper[1])
+    ax.set_zlim(lower[2], upper[2])
+    span = upper - lower
+    ax.set_box_aspect(np.maximum(span, 0.3 * span.max()), zoom=1.05)  # equal scale unless very flat
+    ax.set_xlabel("x [m]", labelpad=-2)
+    ax.set_ylabel("y [m]", labelpad=-2)
+    ax.set_zlabel("z [m]", labelpad=-2)
+    ax.tick_params(labelsize=7, pad=0)
+    ax.view_init(elev=24, azim=-58)
+
+
+def _draw_obstacles_3d(ax: Any, obstacles: list[np.ndarray]) -> None:
+    for vertices in obstacles:
+        faces = _hull_faces(vertices)
+        if faces:
+            ax.add_collection3d(
+                Poly3DCollection(faces, facecolor=OBSTACLE_COLOR, edgecolor="0.3", linewidth=0.6,
+                                 alpha=0.3, gid=GID_OBSTACLE)
+            )
+
+
+# --------------------------------------------------------------------------------- figures
+def make_trajectory_figure(run: RunData, snapshots: int = 4) -> Figure:
+    """The trajectory figure (paper Fig. 3) without saving it.
+
+    Parameters
+    ----------
+    run : RunData
+        A loaded run.
+    snapshots : int
+        Number of evenly spaced instants (first and last included) at which the agents' boxes
+        are drawn.
+
+    Returns
+    -------
+    Figure
+        2D: one axes. 3D: a 3D axes, a top view (x-y) and a side view (x-z).
+    """
+    colors = agent_colors(run.num_agents)
+    obstacles = _obstacle_vertices(run)
+    handles = _legend_handles(run, colors, bool(obstacles))
+    if run.dim == 2:
+        fig = _new_figure(8.0, 6.0)
+        ax = fig.add_subplot()
+        _draw_static_planar(ax, run, (0, 1), obstacles)
+        _draw_paths_planar(ax, run, (0, 1), colors, snapshots)
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+        ax.set_title(_headline(run), fontsize=9)
+        return fig
+    # A fixed layout: constrained layout lets a 3D axes' labels spill over its neighbours.
+    fig = _new_figure(14.0, 5.2, layout=None)
+    ax3 = fig.add_axes((0.0, 0.10, 0.36, 0.78), projection="3d")
+    _set_3d_view(ax3, run)
+    _draw_obstacles_3d(ax3, obstacles)
+    pos, goals = run.positions, run.goals[:, :3]
+    for i, color in enumerate(colors):
+        ax3.plot(pos[:, i, 0], pos[:, i, 1], pos[:, i, 2], color=color, linewidth=1.5)
+        ax3.plot(*pos[0, i, :, None], "o", color=color, markeredgecolor="k", markersize=6)
+        ax3.plot(*goals[i, :, None], "*", color=color, markeredgecolor="k", markersize=11)
+    ax3.set_title("3D view", fontsize=9)
+    for axes, left, title in (((0, 1), 0.41, "top view (x-y)"), ((0, 2), 0.72, "side view (x-z)")):
+        ax = fig.add_axes((left, 0.17, 0.26, 0.66))
+        _draw_static_planar(ax, run, axes, obstacles)
+        _draw_paths_planar(ax, run, axes, colors, snapshots)
+        ax.set_title(title, fontsize=9)
+    fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0), ncol=len(handles),
+               fontsize=8, frameon=False)
+    fig.suptitle(_headline(run), fontsize=10, y=0.985)
+    return fig
+
+
+def plot_trajectories(run: RunData, path: PathLike, snapshots: int = 4) -> Path:
+    """Save the trajectory figure (paper Fig. 3) as a PNG.
+
+    Parameters
+    ----------
+    run : RunData
+        A loaded run.
+    path : str or PathLike
+        Output PNG file.
+    snapshots : int
+        Number of instants at which the agents' boxes are drawn.
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    return _save(make_trajectory_figure(run, snapshots), path)
+
+
+def _default_steps(admm: AdmmResiduals) -> list[int]:
+    """First, middle and slowest MPC step, without repeats, in order."""
+    steps = admm.primal.shape[0]
+    iterations = np.nan_to_num(admm.iterations, nan=-1.0)
+    return sorted({0, steps // 2, int(np.argmax(iterations))})
+
+
+def make_convergence_figure(run: RunData, steps: Sequence[int] | None = None) -> Figure:
+    """The ADMM convergence figure (paper Fig. 4) without saving it.
+
+    Parameters
+    ----------
+    run : RunData
+        A loaded run with ADMM residuals.
+    steps : sequence of int, optional
+        MPC steps to show; default: the first, the middle and the slowest step.
+
+    Returns
+    -------
+    Figure
+        Primal and dual residuals vs iteration (log scale) and the iterations per MPC step.
+
+    Raises
+    ------
+    ValueError
+        When the run has no ADMM residuals or a step is out of range.
+    """
+    admm = run.admm
+    if admm is None:
+        raise RunDataError(f"{run.run_dir}: no ADMM residuals (admm.npz) in this run; nothing to plot")
+    total = admm.primal.shape[0]
+    if total == 0:
+        raise RunDataError(f"{run.run_dir}: admm.npz holds no MPC steps")
+    chosen = _default_steps(admm) if steps is None else [int(s) for s in steps]
+    bad = [s for s in chosen if not 0 <= s < total]
+    if bad or not chosen:
+        raise ValueError(f"steps: expected MPC steps in [0, {total - 1}], got {list(steps or [])}")
+    fig = _new_figure(12.0, 4.0)
+    grid = fig.add_gridspec(1, 3, width_ratios=[1.0, 1.0, 0.9])
+    ax_p = fig.add_subplot(grid[0])
+    ax_d = fig.add_subplot(grid[1], sharey=ax_p)
+    ax_it = fig.add_subplot(grid[2])
+    palette = colormaps["viridis"](np.linspace(0.0, 0.8, len(chosen)))
+    tol = run.summary.get("admm_tol")
+    for ax, values, label in ((ax_p, admm.primal, "primal"), (ax_d, admm.dual, "dual")):
+        for step, color in zip(chosen, palette):
+            row = np.where(values[step] > 0, values[step], np.nan)
+            iters = np.arange(1, row.size + 1)
+            keep = np.isfinite(row)
+            ax.plot(iters[keep], row[keep], "-", marker=".", markersize=3, color=color,
+                    label=f"step {step} ({int(admm.iterations[step])} it.)")
+        if tol is not None:
+            ax.axhline(float(tol), color="k", linestyle="--", linewidth=1.0,
+                       label=f"tolerance {float(tol):g}", gid=GID_TOLERANCE)
+        ax.set_yscale("log", nonpositive="mask")
+        ax.set_xlabel("ADMM iteration")
+        ax.set_ylabel(f"{label} residual")
+        ax.set_title(f"{label} residual", fontsize=9)
+        ax.grid(True, which="both", linewidth=0.4, alpha=0.4)
+    ax_p.legend(fontsize=8)
+    mpc_steps = np.arange(total)
+    ax_it.bar(mpc_steps, admm.iterations, width=1.0, color="0.7")
+    for step, color in zip(chosen, palette):
+        ax_it.bar([step], [admm.iterations[step]], width=1.0, color=color)
+    ax_it.set_xlabel("MPC step")
+    ax_it.set_ylabel("ADMM iterations")
+    ax_it.set_title("iterations per MPC step", fontsize=9)
+    ax_it.grid(True, axis="y", linewidth=0.4, alpha=0.4)
+    fig.suptitle(f"{run.name}: ADMM convergence ({total} MPC steps)", fontsize=10)
+    return fig
+
+
+def plot_convergence(run: RunData, path: PathLike, steps: Sequence[int] | None = None) -> Path:
+    """Save the ADMM convergence figure (paper Fig. 4) as a PNG.
+
+    Parameters
+    ----------
+    run : RunData
+        A loaded run with ADMM residuals.
+    path : str or PathLike
+        Output PNG file.
+    steps : sequence of int, optional
+        MPC steps to show; default: the first, the middle and the slowest step.
+
+    Returns
+    -------
+    Path
+        The written file.
+
+    Raises
+    ------
+    ValueError
+        When the run has no ADMM residuals.
+    """
+    return _save(make_convergence_figure(run, steps), path)
+
+
+# --------------------------------------------------------------------------------- animation
+def _planar_movers(
+    ax: Axes, run: RunData, axes: tuple[int, int], colors: list[Any]
+) -> Callable[[int, int], None]:
+    """Create the moving artists of a 2D view; return ``update(k, first)`` (trail from ``first``)."""
+    pos = run.positions[:, :, list(axes)]
+    half = run.delta[list(axes)]
+    for i, color in enumerate(colors):
+        ax.plot(*run.goals[i, list(axes)], "*", color=color, markeredgecolor="k", markersize=11, zorder=4)
+    boxes = [ax.add_patch(_box_patch(pos[0, i], half, c, 0.3, zorder=2)) for i, c in enumerate(colors)]
+    trails = [ax.plot([], [], color=c, linewidth=1.5, zorder=3)[0] for c in colors]
+    dots = [ax.plot([], [], "o", color=c, markeredgecolor="k", markersize=5, zorder=5)[0] for c in colors]
+
+    def update(k: int, first: int) -> None:
+        for i in range(len(colors)):
+            boxes[i].set_xy(tuple(pos[k, i] - half))
+            trails[i].set_data(pos[first : k + 1, i, 0], pos[first : k + 1, i, 1])
+            dots[i].set_data([pos[k, i, 0]], [pos[k, i, 1]])
+
+    return update
+
+
+def _cube_edges(center: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """(12, 2, 3) edge segments of the box ``center +- half``."""
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+    points = center + corners * half
+    pairs = [(a, b) for a in range(8) for b in range(a + 1, 8) if np.sum(corners[a] != corners[b]) == 1]
+    return np.array([[points[a], points[b]] for a, b in pairs])
+
+
+def _spatial_movers(ax: Any, run: RunData, colors: list[Any]) -> Callable[[int, int], None]:
+    """Moving artists of the 3D axes: dots, trails and wireframe boxes."""
+    pos = run.positions
+    for i, color in enumerate(colors):
+        ax.plot(*run.goals[i, :3, None], "*", color=color, markeredgecolor="k", markersize=10)
+    trails = [ax.plot([], [], [], color=c, linewidth=1.4)[0] for c in colors]
+    dots = [ax.plot([], [], [], "o", color=c, markeredgecolor="k", markersize=5)[0] for c in colors]
+    cubes = Line3DCollection(
+        np.concatenate([_cube_edges(pos[0, i], run.delta) for i in range(len(colors))]),
+        colors=np.repeat(np.asarray(colors), 12, axis=0), linewidths=0.7, alpha=0.6,
+    )
+    ax.add_collection3d(cubes)
+
+    def update(k: int, first: int) -> None:
+        for i in range(len(colors)):
+            trails[i].set_data_3d(pos[first : k + 1, i, 0], pos[first : k + 1, i, 1], pos[first : k + 1, i, 2])
+            dots[i].set_data_3d([pos[k, i, 0]], [pos[k, i, 1]], [pos[k, i, 2]])
+        cubes.set_segments(np.concatenate([_cube_edges(pos[k, i], run.delta) for i in range(len(colors))]))
+
+    return update
+
+
+def _time_format(times: np.ndarray) -> str:
+    """A format with enough decimals that consecutive frame times print differently."""
+    gaps = np.diff(times)
+    smallest = float(gaps.min()) if gaps.size and np.all(gaps > 0) else 0.1
+    decimals = max(1, math.ceil(-math.log10(smallest) - 1e-9))
+    return f"t = {{:.{min(decimals, 4)}f}} s"
+
+
+def animate(
+    run: RunData,
+    path: PathLike,
+    fmt: Literal["gif", "mp4"] = "gif",
+    fps: float | None = None,
+    max_frames: int = 200,
+) -> Path:
+    """Write an animation of the run: agents with their boxes, short trails, goals and obstacles.
+
+    Parameters
+    ----------
+    run : RunData
+        A loaded run.
+    path : str or PathLike
+        Output file; its suffix must match ``fmt`` (added when missing).
+    fmt : {"gif", "mp4"}
+        GIF through Pillow, MP4 through ffmpeg.
+    fps : float, optional
+        Frames per second; default real time, capped to 20.
+    max_frames : int
+        The states are subsampled evenly to at most this many frames (see :func:`frame_indices`).
+
+    Returns
+    -------
+    Path
+        The written file.
+
+    Raises
+    ------
+    AnimationWriterError
+        ``fmt="mp4"`` without ffmpeg installed.
+    ValueError
+        Unknown ``fmt``, mismatched suffix, ``max_frames < 1`` or ``fps <= 0``.
+    """
+    if fmt not in ("gif", "mp4"):
+        raise ValueError(f"fmt: expected 'gif' or 'mp4', got {fmt!r}")
+    if max_frames < 1:
+        raise ValueError(f"max_frames: must be >= 1, got {max_frames}")
+    if fps is not None and fps <= 0:
+        raise ValueError(f"fps: must be > 0, got {fps}")
+    out = Path(path)
+    if out.suffix == "":
+        out = out.with_suffix(f".{fmt}")
+    elif out.suffix.lower() != f".{fmt}":
+        raise ValueError(f"{out}: suffix does not match fmt={fmt!r}")
+    if fmt == "mp4" and not animation.writers.is_available("ffmpeg"):
+        raise AnimationWriterError(
+            "mp4 animations need ffmpeg, which was not found: install ffmpeg "
+            "(e.g. `apt-get install ffmpeg` or `conda install ffmpeg`) or use fmt='gif'"
+        )
+    frames = frame_indices(run.num_steps + 1, max_frames)
+    times = run.t[frames]
+    if fps is None:
+        duration = float(times[-1] - times[0])
+        fps = min(MAX_FPS, (len(frames) - 1) / duration) if duration > 0 and len(frames) > 1 else 10.0
+    trail = max(1, round(TRAIL_SECONDS / run.dt)) if run.dt > 0 else 15
+    colors = agent_colors(run.num_agents)
+    obstacles = _obstacle_vertices(run)
+    if run.dim == 2:
+        fig = _new_figure(6.4, 5.4)
+        ax = fig.add_subplot()
+        _draw_static_planar(ax, run, (0, 1), obstacles)
+        updates = [_planar_movers(ax, run, (0, 1), colors)]
+    else:
+        fig = _new_figure(10.0, 5.0)
+        ax3 = fig.add_subplot(1, 2, 1, projection="3d")
+        _set_3d_view(ax3, run)
+        _draw_obstacles_3d(ax3, obstacles)
+        ax = fig.add_subplot(1, 2, 2)
+        _draw_static_planar(ax, run, (0, 1), obstacles)
+        ax.set_title("top view (x-y)", fontsize=9)
+        updates = [_spatial_movers(ax3, run, colors), _planar_movers(ax, run, (0, 1), colors)]
+    fig.suptitle(f"{run.name} ({run.summary.get('method', run.scenario.solver.method)})", fontsize=10)
+    clock = ax.text(0.02, 0.98, "", transform=ax.transAxes, fontsize=9, va="top", ha="left", zorder=10,
+                    bbox={"boxstyle": "round,pad=0.3", "facecolor": "white", "edgecolor": "0.6", "alpha": 0.85})
+    label = _time_format(times)
+    fig.canvas.draw()
+    fig.set_layout_engine("none")  # freeze the layout: every frame has the same geometry
+    writer: animation.AbstractMovieWriter
+    if fmt == "gif":
+        writer = animation.PillowWriter(fps=fps)
+    else:
+        writer = animation.FFMpegWriter(fps=fps, codec="h264", extra_args=["-pix_fmt", "yuv420p"])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with writer.saving(fig, str(out), dpi=ANIMATION_DPI):
+        for k, stamp in zip(frames, times):
+            first = max(0, int(k) - trail)
+            for update in updates:
+                update(int(k), first)
+            clock.set_text(label.format(stamp))
+            writer.grab_frame()
+    fig.clear()
+    return out
+
+
+# --------------------------------------------------------------------------------- entry point
+def plot_run(run_dir: PathLike, out: PathLike | None = None) -> list[Path]:
+    """Load a run folder and write its figures (what ``swarmpc plot RUN_DIR`` calls).
+
+    Parameters
+    ----------
+    run_dir : str or PathLike
+        The run folder.
+    out : str or PathLike, optional
+        Output folder (created if needed); default the run folder.
+
+    Returns
+    -------
+    list of Path
+        ``trajectory.png`` and, when the run has ADMM residuals, ``convergence.png``.
+    """
+    run = load_run(run_dir)
+    folder = Path(out) if out is not None else run.run_dir
+    written = [plot_trajectories(run, folder / "trajectory.png")]
+    if run.admm is not None and run.admm.primal.shape[0] > 0:
+        written.append(plot_convergence(run, folder / "convergence.png"))
+    return written

@@ -1,0 +1,148 @@
+"""Built-in scenarios, selectable by name (``swarmpc scenarios`` lists them).
+
+* ``paper-2d`` / ``paper-3d``: the paper's setting (M = 4, N = 10, dt = 0.1, Q = 0.1 I, R = I,
+  Qf = I). The paper gives no positions; here four agents start at the corners of a 3 m square
+  (2D) or at alternate corners of a 3 m cube around z = 1.5 (3D) and swap diagonally, so all
+  four paths cross at the centre, the hardest case for a 4-agent swap.
+* ``circle``: M agents on a circle (2D) or a sphere (3D, Fibonacci points) swapping antipodally.
+* ``random``: seeded random starts and goals in a box, at least 0.5 m apart.
+* ``wall-door``: a wall with a door between two groups that swap sides.
+* ``pillars``: agents crossing a field of pillars.
+* ``u-trap``: a U-shaped trap in front of a goal; the straight line leads into it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from swarmpc.config import Scenario, ScenarioError, scenario_from_dict
+
+PAPER = {"dt": 0.1, "horizon": 10, "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}}
+
+
+def paper_2d(delta: float = 0.3, **_: Any) -> dict[str, Any]:
+    corners = [[-1.5, -1.5], [1.5, -1.5], [1.5, 1.5], [-1.5, 1.5]]
+    agents = [{"start": corners[i], "goal": corners[(i + 2) % 4]} for i in range(4)]
+    return {"name": "paper-2d", "dim": 2, **PAPER, "delta": delta,
+            "workspace": {"lower": [-3.0, -3.0], "upper": [3.0, 3.0]}, "agents": agents}
+
+
+def paper_3d(delta: float = 0.3, **_: Any) -> dict[str, Any]:
+    corners = [[-1.5, -1.5, 0.5], [1.5, -1.5, 2.5], [1.5, 1.5, 0.5], [-1.5, 1.5, 2.5]]
+    agents = [
+        {"start": corners[i], "goal": [-corners[i][0], -corners[i][1], 3.0 - corners[i][2]]}
+        for i in range(4)
+    ]
+    return {"name": "paper-3d", "dim": 3, **PAPER, "delta": delta,
+            "workspace": {"lower": [-3.0, -3.0, 0.0], "upper": [3.0, 3.0, 3.0]}, "agents": agents}
+
+
+def circle(agents: int = 8, dim: int = 2, radius: float | None = None, delta: float = 0.3,
+           **_: Any) -> dict[str, Any]:
+    m = int(agents)
+    if dim == 2:
+        r = radius or max(2.0, 1.2 * m * delta / np.pi + 0.5)
+        angles = 2 * np.pi * np.arange(m) / m
+        points = np.stack([r * np.cos(angles), r * np.sin(angles)], axis=1)
+        center = np.zeros(2)
+    else:
+        r = radius or max(2.0, np.sqrt(m) * delta + 0.5)
+        k = np.arange(m) + 0.5
+        polar = np.arccos(1 - 2 * k / m)
+        azimuth = np.pi * (1 + 5**0.5) * k
+        points = r * np.stack(
+            [np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1
+        )
+        center = np.array([0.0, 0.0, r + 0.5])
+    starts = points + center
+    goals = -points + center
+    bound = r + 1.0
+    lower = (center - bound).tolist()
+    upper = (center + bound).tolist()
+    return {"name": f"circle-{m}" if dim == 2 else f"sphere-{m}", "dim": dim, **PAPER,
+            "delta": delta, "workspace": {"lower": lower, "upper": upper},
+            "agents": [{"start": s.round(6).tolist(), "goal": g.round(6).tolist()}
+                       for s, g in zip(starts, goals)],
+            "stop": {"max_steps": 600}}
+
+
+def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.3,
+                 min_gap: float = 0.5, **_: Any) -> dict[str, Any]:
+    """Seeded random starts and goals in a 3 x 3 (x 2) m box, pairwise >= ``min_gap`` apart."""
+    rng = np.random.default_rng(seed)
+    lower = np.array([-1.5, -1.5, 0.2][:dim])
+    upper = np.array([1.5, 1.5, 2.2][:dim])
+
+    def sample() -> np.ndarray:
+        points: list[np.ndarray] = []
+        for _attempt in range(200000):
+            p = rng.uniform(lower + 0.1, upper - 0.1)
+            if all(np.linalg.norm(p - q) >= min_gap and np.max(np.abs(p - q)) >= delta for q in points):
+                points.append(p)
+                if len(points) == agents:
+                    return np.array(points)
+        raise ScenarioError(f"agents: {agents} agents do not fit {min_gap} m apart in the random box")
+
+    starts, goals = sample(), sample()
+    return {"name": f"random-{dim}d-{agents}-s{seed}", "dim": dim, **PAPER, "delta": delta,
+            "seed": seed, "limits": {"accel": 1.0},
+            "workspace": {"lower": lower.tolist(), "upper": upper.tolist()},
+            "agents": [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()}
+                       for s, g in zip(starts, goals)],
+            "stop": {"goal_tolerance": 0.1, "max_steps": 600}}
+
+
+def wall_door(delta: float = 0.2, **_: Any) -> dict[str, Any]:
+    """A wall across x = 0 with a 1.2 m door at y in [-0.6, 0.6]; two agents swap sides."""
+    return {"name": "wall-door", "dim": 2, **PAPER, "delta": delta,
+            "workspace": {"lower": [-3.0, -3.0], "upper": [3.0, 3.0]},
+            "obstacles": [{"box": {"center": [0.0, 1.8], "half_size": [0.15, 1.2]}},
+                          {"box": {"center": [0.0, -1.8], "half_size": [0.15, 1.2]}}],
+            "agents": [{"start": [-2.0, 1.5], "goal": [2.0, 1.5]},
+                       {"start": [2.0, -1.5], "goal": [-2.0, -1.5]}],
+            "stop": {"max_steps": 600}}
+
+
+def pillars(delta: float = 0.2, **_: Any) -> dict[str, Any]:
+    """Four agents crossing a 3 x 3 grid of square pillars."""
+    obstacles = [{"box": {"center": [x, y], "half_size": [0.2, 0.2]}}
+                 for x in (-1.0, 0.0, 1.0) for y in (-1.0, 0.0, 1.0)]
+    agents = [{"start": [-2.5, -0.5], "goal": [2.5, 0.5]}, {"start": [2.5, -0.5], "goal": [-2.5, 0.5]},
+              {"start": [-0.5, -2.5], "goal": [0.5, 2.5]}, {"start": [0.5, 2.5], "goal": [-0.5, -2.5]}]
+    return {"name": "pillars", "dim": 2, **PAPER, "delta": delta,
+            "workspace": {"lower": [-3.0, -3.0], "upper": [3.0, 3.0]},
+            "obstacles": obstacles, "agents": agents, "stop": {"max_steps": 600}}
+
+
+def u_trap(delta: float = 0.2, **_: Any) -> dict[str, Any]:
+    """A U open towards the start sits between the agent and its goal: straight guesses stall."""
+    obstacles = [{"box": {"center": [0.5, 0.0], "half_size": [0.1, 1.0]}},
+                 {"box": {"center": [-0.1, 0.9], "half_size": [0.5, 0.1]}},
+                 {"box": {"center": [-0.1, -0.9], "half_size": [0.5, 0.1]}}]
+    return {"name": "u-trap", "dim": 2, **PAPER, "delta": delta,
+            "workspace": {"lower": [-3.0, -3.0], "upper": [3.0, 3.0]},
+            "obstacles": obstacles,
+            "agents": [{"start": [-2.0, 0.0], "goal": [2.0, 0.0]}],
+            "stop": {"max_steps": 600}}
+
+
+BUILTINS: dict[str, tuple[Callable[..., dict[str, Any]], str]] = {
+    "paper-2d": (paper_2d, "the paper's 2D experiment: 4 agents swap diagonal corners of a 3 m square"),
+    "paper-3d": (paper_3d, "the paper's 3D experiment: 4 drones swap diagonal corners of a 3 m cube"),
+    "circle": (circle, "M agents on a circle swap antipodally (--agents M; dim 3: a sphere)"),
+    "random": (random_swarm, "seeded random starts and goals in a 3 x 3 x 2 m box (--agents, --seed)"),
+    "wall-door": (wall_door, "two agents swap sides through the door of a wall"),
+    "pillars": (pillars, "four agents cross a 3 x 3 field of pillars"),
+    "u-trap": (u_trap, "a U-shaped trap in front of the goal; the straight line leads into it"),
+}
+
+
+def builtin_scenario(name: str, **params: Any) -> Scenario:
+    """A built-in scenario by name; ``params`` (agents, dim, seed, delta) shape the generators."""
+    if name not in BUILTINS:
+        raise ScenarioError(f"scenario: unknown built-in {name!r} (see 'swarmpc scenarios')")
+    factory = BUILTINS[name][0]
+    return scenario_from_dict(factory(**{k: v for k, v in params.items() if v is not None}), source=name)

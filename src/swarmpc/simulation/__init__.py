@@ -1,0 +1,1 @@
+"""Receding-horizon simulation: the closed loop, metrics and run folders."""

@@ -1,0 +1,62 @@
+"""Per-step initial-guess strategies for the closed loop (straight, shifted, RRT, auto)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from swarmpc.config import Scenario
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.solvers.base import PlanStep
+from swarmpc.solvers.guesses import nominal_speed
+from swarmpc.solvers.rrt import RRTGuess, straight_line_guess
+
+
+class GuessProvider:
+    """Builds every agent's (N+1, 2d) state guess at each MPC step.
+
+    * ``straight``: straight line to the goal at a reachable speed;
+    * ``shifted``: the agent's previous plan moved one step forward (straight at the start);
+    * ``rrt``: an OMPL RRT-Connect path around the static obstacles inflated by d_min;
+    * ``auto``: shifted while the agent's previous solve succeeded, otherwise RRT when the
+      scenario has static obstacles and straight when it has none.
+    """
+
+    def __init__(self, scn: Scenario, settings: OCPSettings, strategy: str | None = None) -> None:
+        self.strategy = strategy or scn.solver.initial_guess
+        self.settings = settings
+        self.speed = nominal_speed(settings)
+        self._rrt: RRTGuess | None = None
+        uses_rrt = self.strategy == "rrt" or (self.strategy == "auto" and scn.obstacles)
+        if uses_rrt:
+            lower, upper = scn.bounds()
+            self._rrt = RRTGuess(
+                lower, upper, scn.obstacle_halfspaces(), inflate=scn.d_min, seed=scn.seed,
+                time_budget=scn.solver.rrt_time_budget,
+            )
+
+    @property
+    def rrt_stats(self) -> dict[str, int] | None:
+        return self._rrt.stats if self._rrt is not None else None
+
+    def _fresh(self, agent: int, state: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        s = self.settings
+        if self._rrt is not None:
+            guess = self._rrt.guess(agent, state, goal[: s.dim], s.dt, s.horizon, self.speed)
+            if guess is not None:
+                return guess
+        return straight_line_guess(state, goal[: s.dim], s.dt, s.horizon, self.speed)
+
+    def guesses(self, states: np.ndarray, goals: np.ndarray, previous: PlanStep | None) -> np.ndarray:
+        """(M, N+1, 2d) guesses for measured ``states`` (M, 2d)."""
+        out = []
+        for i, (state, goal) in enumerate(zip(states, goals)):
+            shiftable = previous is not None and np.allclose(previous.states[i, 1], state, atol=1e-6)
+            if self.strategy in ("shifted", "auto") and shiftable and not previous.fallback[i]:  # type: ignore[union-attr]
+                plan = previous.states[i]  # type: ignore[union-attr]
+                out.append(np.vstack([plan[1:], plan[-1:]]))
+            elif self.strategy == "straight":
+                out.append(straight_line_guess(state, goal[: self.settings.dim], self.settings.dt,
+                                               self.settings.horizon, self.speed))
+            else:
+                out.append(self._fresh(i, state, goal))
+        return np.array(out)

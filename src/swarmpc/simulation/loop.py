@@ -1,0 +1,108 @@
+"""The receding-horizon closed loop: guess, solve, apply the first inputs, record, repeat."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from swarmpc.config import Scenario
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.model.dynamics import DoubleIntegrator
+from swarmpc.simulation.deadlock import DeadlockResolver
+from swarmpc.simulation.guessing import GuessProvider
+from swarmpc.simulation.results import RunResult, StepRecord
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver
+from swarmpc.solvers.base import PlanStep
+from swarmpc.solvers.centralized import CentralizedSolver
+from swarmpc.solvers.executors import Executor
+
+ProgressCallback = Callable[[int, int, np.ndarray], None]
+
+
+class MPCSolver(Protocol):
+    def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep: ...
+
+
+def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None = None) -> MPCSolver:
+    """The scenario's solver (``solver.method``), built once for the run."""
+    if scn.solver.method == "centralized":
+        return CentralizedSolver(settings, scn.num_agents, scn.delta_vector)
+    config = ADMMConfig(
+        rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
+        adaptive_rho=scn.solver.adaptive_rho,
+    )
+    return ADMMSolver(settings, scn.num_agents, scn.delta_vector, config, executor)
+
+
+def goal_reached(states: np.ndarray, goals: np.ndarray, scn: Scenario) -> np.ndarray:
+    """Per agent: within the goal tolerance in position and nearly at rest."""
+    d = scn.dim
+    near = np.linalg.norm(states[:, :d] - goals[:, :d], axis=1) <= scn.stop.goal_tolerance
+    slow = np.linalg.norm(states[:, d:] - goals[:, d:], axis=1) <= scn.stop.speed_tolerance
+    return near & slow
+
+
+@dataclass
+class StopFlag:
+    """Set ``requested`` (e.g. from a signal handler) to end the loop after the current step."""
+
+    requested: bool = False
+
+
+def simulate(
+    scn: Scenario,
+    solver: MPCSolver | None = None,
+    progress: ProgressCallback | None = None,
+    stop_flag: StopFlag | None = None,
+    executor: Executor | None = None,
+) -> RunResult:
+    """Run the scenario in closed loop until every agent is at its goal or ``max_steps``."""
+    started = time.perf_counter()
+    settings = OCPSettings.from_scenario(scn)
+    solver = solver or make_solver(scn, settings, executor)
+    model = DoubleIntegrator(scn.dim, scn.dt, scn.discretization)
+    guesser = GuessProvider(scn, settings)
+    deadlocks = DeadlockResolver(scn.num_agents, scn.dim)
+    goals = scn.goal_states()
+    states = scn.start_states()
+    trajectory = [states]
+    inputs: list[np.ndarray] = []
+    records: list[StepRecord] = []
+    previous: PlanStep | None = None
+    interrupted = False
+    for step in range(scn.stop.max_steps):
+        if goal_reached(states, goals, scn).all():
+            break
+        if stop_flag is not None and stop_flag.requested:
+            interrupted = True
+            break
+        step_goals = deadlocks.goals(step, states, goals)
+        guess = guesser.guesses(states, step_goals, previous)
+        plan = solver.plan(states, step_goals, guess)
+        control = plan.inputs[:, 0]
+        states = model.step(states, control)
+        trajectory.append(states)
+        inputs.append(control)
+        records.append(StepRecord.from_plan(plan))
+        previous = plan
+        if progress is not None:
+            progress(step + 1, scn.stop.max_steps, states)
+    close = getattr(solver, "close", None)
+    if callable(close):
+        close()
+    result_states = np.array(trajectory)
+    result_inputs = np.array(inputs).reshape(len(inputs), scn.num_agents, scn.dim)
+    return RunResult.create(
+        scenario=scn,
+        states=result_states,
+        inputs=result_inputs,
+        records=records,
+        deadlock_events=deadlocks.events,
+        interrupted=interrupted,
+        wall_time=time.perf_counter() - started,
+        rrt_stats=guesser.rrt_stats,
+    )

@@ -1,0 +1,198 @@
+"""Run results: a frozen result object and its run folder, written atomically.
+
+A run folder holds ``summary.json``, ``trajectory.npz`` and ``scenario.yaml`` (the contract of
+design.md section 8), ``steps.npz`` (per-step solver records) and, for ADMM, ``admm.npz`` (residual
+histories). It is written under a temporary name beside the target and renamed into place when
+complete, so a reader never sees a half-written folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from swarmpc.config import Scenario, scenario_to_yaml
+from swarmpc.simulation.metrics import summarize
+from swarmpc.solvers.base import PlanStep
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """What one MPC step's solve reported."""
+
+    wall_time: float
+    agent_times: np.ndarray
+    failures: int
+    fallback: np.ndarray
+    max_slack: float
+    admm_iterations: int | None
+    primal_residuals: tuple[float, ...]
+    dual_residuals: tuple[float, ...]
+    rho: tuple[float, ...]
+
+    @classmethod
+    def from_plan(cls, plan: PlanStep) -> StepRecord:
+        return cls(
+            wall_time=plan.wall_time,
+            agent_times=np.asarray(plan.agent_times, float),
+            failures=plan.failures,
+            fallback=np.asarray(plan.fallback, bool),
+            max_slack=plan.max_slack,
+            admm_iterations=plan.admm_iterations,
+            primal_residuals=tuple(plan.primal_residuals),
+            dual_residuals=tuple(plan.dual_residuals),
+            rho=tuple(plan.rho_history),
+        )
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """A finished (or interrupted) closed-loop run: arrays, per-step records and the summary."""
+
+    scenario: Scenario
+    t: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    records: tuple[StepRecord, ...]
+    summary: dict[str, Any]
+    deadlock_events: tuple[tuple[int, int], ...] = ()
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def create(
+        cls,
+        scenario: Scenario,
+        states: np.ndarray,
+        inputs: np.ndarray,
+        records: Sequence[StepRecord],
+        deadlock_events: Sequence[tuple[int, int]],
+        interrupted: bool,
+        wall_time: float,
+        rrt_stats: dict[str, int] | None = None,
+    ) -> RunResult:
+        is_admm = scenario.solver.method == "admm"
+        iterations = np.array([r.admm_iterations or 0 for r in records]) if is_admm else None
+        summary = summarize(
+            scenario,
+            scenario.solver.method,
+            states,
+            inputs,
+            step_times=np.array([r.wall_time for r in records]),
+            admm_iterations=iterations,
+            solver_failures=sum(r.failures for r in records),
+            max_slack=max((r.max_slack for r in records), default=0.0),
+            deadlock_events=len(deadlock_events),
+            interrupted=interrupted,
+            wall_time=wall_time,
+        )
+        summary["fallback_steps"] = int(sum(r.fallback.any() for r in records))
+        if is_admm:
+            summary["admm_tol"] = scenario.solver.tol
+            summary["rho"] = scenario.solver.rho
+            after_first = iterations[1:] if iterations is not None and len(iterations) > 1 else iterations
+            summary["admm_iterations_after_first"] = (
+                float(np.median(after_first)) if after_first is not None and len(after_first) else None
+            )
+        if rrt_stats is not None:
+            summary["rrt"] = rrt_stats
+        summary["agent_step_time_ms"] = _agent_time_stats(records)
+        return cls(
+            scenario=scenario,
+            t=np.arange(states.shape[0]) * scenario.dt,
+            states=states,
+            inputs=inputs,
+            records=tuple(records),
+            summary=summary,
+            deadlock_events=tuple(deadlock_events),
+        )
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.states[:, :, : self.scenario.dim]
+
+    def residual_histories(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(primal, dual, rho), each (steps, longest) padded with NaN."""
+        longest = max((len(r.primal_residuals) for r in self.records), default=0)
+        shape = (len(self.records), longest)
+        primal, dual, rho = np.full(shape, np.nan), np.full(shape, np.nan), np.full(shape, np.nan)
+        for k, record in enumerate(self.records):
+            n = len(record.primal_residuals)
+            primal[k, :n] = record.primal_residuals
+            dual[k, :n] = record.dual_residuals
+            rho[k, :n] = record.rho
+        return primal, dual, rho
+
+
+def _agent_time_stats(records: Sequence[StepRecord]) -> dict[str, float | None]:
+    if not records:
+        return {"median": None, "p95": None}
+    times = np.concatenate([r.agent_times for r in records]) * 1000.0
+    return {"median": float(np.median(times)), "p95": float(np.percentile(times, 95))}
+
+
+Writer = Callable[[RunResult, Path], None]
+
+
+def write_run(result: RunResult, out_dir: str | Path, extra_writers: Sequence[Writer] = ()) -> Path:
+    """Write the run folder atomically; ``extra_writers`` add files (figures) before the move."""
+    target = Path(out_dir).resolve()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=target.parent))
+    try:
+        _write_contents(result, staging)
+        for writer in extra_writers:
+            writer(result, staging)
+        if target.exists():
+            retired = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+            os.replace(target, retired / target.name)
+            os.replace(staging, target)
+            shutil.rmtree(retired, ignore_errors=True)
+        else:
+            os.replace(staging, target)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return target
+
+
+def _write_contents(result: RunResult, folder: Path) -> None:
+    scn = result.scenario
+    (folder / "scenario.yaml").write_text(scenario_to_yaml(scn))
+    (folder / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
+    delta = np.asarray(scn.delta, float)
+    np.savez_compressed(
+        folder / "trajectory.npz",
+        t=result.t,
+        states=result.states,
+        inputs=result.inputs,
+        goals=scn.goal_states(),
+        delta=delta,
+        dt=np.asarray(scn.dt),
+    )
+    records = result.records
+    m = scn.num_agents
+    np.savez_compressed(
+        folder / "steps.npz",
+        step_time_s=np.array([r.wall_time for r in records]),
+        agent_time_s=np.array([r.agent_times for r in records]).reshape(len(records), m),
+        failures=np.array([r.failures for r in records], int),
+        fallback=np.array([r.fallback for r in records], bool).reshape(len(records), m),
+        max_slack=np.array([r.max_slack for r in records]),
+    )
+    if scn.solver.method == "admm":
+        primal, dual, rho = result.residual_histories()
+        np.savez_compressed(
+            folder / "admm.npz",
+            primal=primal,
+            dual=dual,
+            rho=rho,
+            iterations=np.array([r.admm_iterations or 0 for r in records], int),
+        )

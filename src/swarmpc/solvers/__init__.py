@@ -1,0 +1,1 @@
+"""Numerical solvers and initial-guess strategies."""

@@ -1,0 +1,91 @@
+"""Centralised MPC: one NLP over all agents, the optimality reference and a baseline."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from swarmpc.formulation.nlp import NLPSolution, shift_blocks
+from swarmpc.formulation.ocp import OCPSettings, build_centralized, pair_tag
+from swarmpc.solvers.base import PlanStep, fallback_plan
+from swarmpc.solvers.guesses import agent_guess_blocks, pair_certificates
+
+
+class CentralizedSolver:
+    """Solves the global OCP with IPOPT; built once, warm-started from its shifted solution."""
+
+    def __init__(self, settings: OCPSettings, num_agents: int, delta: np.ndarray) -> None:
+        self.settings = settings
+        self.num_agents = num_agents
+        self.delta = np.asarray(delta, float)
+        self.nlp = build_centralized(settings, num_agents)
+        self._previous: NLPSolution | None = None
+        self._previous_plan: tuple[np.ndarray, np.ndarray] | None = None
+
+    def reset(self) -> None:
+        self._previous = None
+        self._previous_plan = None
+
+    def initial_point(self, guess: np.ndarray) -> dict[str, np.ndarray]:
+        """Primal guess from state guesses (M, N+1, 2d): trajectories and certificates."""
+        s, first = self.settings, self.settings.first_constrained_step
+        point: dict[str, np.ndarray] = {}
+        for i in range(self.num_agents):
+            point.update(agent_guess_blocks(str(i), guess[i], s))
+        for i in range(self.num_agents):
+            for j in range(i + 1, self.num_agents):
+                offsets = guess[i, first:, : s.dim] - guess[j, first:, : s.dim]
+                point[f"L{pair_tag(i, j)}"] = pair_certificates(offsets, self.delta)
+        return point
+
+    def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep:
+        """One MPC step from measured ``states`` (M, 2d) towards ``goals`` (M, 2d)."""
+        started = time.perf_counter()
+        params: dict[str, np.ndarray] = {"delta": self.delta}
+        for i in range(self.num_agents):
+            params[f"x0{i}"] = states[i]
+            params[f"goal{i}"] = goals[i]
+        point = self.initial_point(guess)
+        lam_x = lam_g = None
+        if self._previous is not None:
+            shifted = shift_blocks(self._previous.x)
+            for name, value in shifted.items():
+                if name.startswith(("L", "A")):
+                    point[name] = value
+            lam_g = self.nlp.g_layout.pack(shift_blocks(self._previous.g_duals))
+            lam_x = self.nlp.x_layout.pack(shift_blocks(self.nlp.x_layout.unpack(self._previous.lam_x)))
+        solution = self.nlp.solve(params, point, lam_x, lam_g)
+        d, M = self.settings.dim, self.num_agents
+        plans_x = np.empty((M, self.settings.horizon + 1, 2 * d))
+        plans_u = np.empty((M, self.settings.horizon, d))
+        fallback = np.zeros(M, bool)
+        if solution.success:
+            self._previous = solution
+            for i in range(M):
+                plans_x[i] = solution.x[f"X{i}"].T
+                plans_u[i] = solution.x[f"U{i}"].T
+        else:
+            self._previous = None
+            fallback[:] = True
+            for i in range(M):
+                previous = self._previous_plan
+                plans_x[i], plans_u[i] = fallback_plan(
+                    states[i],
+                    previous[0][i] if previous else None,
+                    previous[1][i] if previous else None,
+                    self.settings,
+                )
+        self._previous_plan = (plans_x, plans_u)
+        slack = [v.max() for k, v in solution.x.items() if k.startswith("A") and v.size]
+        elapsed = time.perf_counter() - started
+        return PlanStep(
+            states=plans_x,
+            inputs=plans_u,
+            predicted_cost=solution.cost,
+            max_slack=float(max(slack)) if slack and solution.success else 0.0,
+            wall_time=elapsed,
+            agent_times=np.full(M, solution.solve_time / M),
+            failures=0 if solution.success else 1,
+            fallback=fallback,
+        )

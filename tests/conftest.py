@@ -1,0 +1,45 @@
+"""Shared helpers: run folders produced through the real command line, and independent checks."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def run_cli(*args: str, cwd: Path | None = None, timeout: float = 900) -> subprocess.CompletedProcess:
+    """``python -m swarmpc ARGS`` in a subprocess, as a user would run it."""
+    return subprocess.run(
+        [sys.executable, "-m", "swarmpc", *args], capture_output=True, text=True, cwd=cwd, timeout=timeout
+    )
+
+
+def load_folder(folder: Path) -> tuple[dict, dict]:
+    summary = json.loads((folder / "summary.json").read_text())
+    with np.load(folder / "trajectory.npz") as data:
+        arrays = {key: data[key] for key in data.files}
+    return summary, arrays
+
+
+def recount_collisions(states: np.ndarray, delta: np.ndarray) -> tuple[int, float]:
+    """Collisions and the min separation ratio, by brute force over every pair and instant."""
+    d = states.shape[2] // 2
+    delta = np.broadcast_to(np.asarray(delta, float), (d,))
+    count, worst = 0, np.inf
+    for i in range(states.shape[1]):
+        for j in range(i + 1, states.shape[1]):
+            ratio = np.max(np.abs(states[:, i, :d] - states[:, j, :d]) / delta, axis=1)
+            count += int(np.sum(ratio < 1 - 1e-9))
+            worst = min(worst, float(ratio.min()))
+    return count, worst
+
+
+def dynamics_error(states: np.ndarray, inputs: np.ndarray, dt: float) -> float:
+    """Largest deviation of the saved states from the Euler double integrator."""
+    d = inputs.shape[2]
+    p, v = states[:-1, :, :d], states[:-1, :, d:]
+    predicted = np.concatenate([p + dt * v, v + dt * inputs], axis=2)
+    return float(np.max(np.abs(predicted - states[1:])))

@@ -1,0 +1,93 @@
+"""The OBCA certificate law, checked against independent geometry.
+
+For a point p and a bounded polytope {x : G x <= g}:
+* max over lambda >= 0, ||G^T lambda|| <= 1 of (G p - g)^T lambda = Euclidean distance (p outside);
+* max over lambda >= 0, ||G^T lambda|| = 1  of (G p - g)^T lambda = -penetration depth (p inside).
+The maxima are computed with the formulation's own certificate expressions and IPOPT; the
+references come from a projection QP (SLSQP) and from the facet distances of a convex hull.
+"""
+
+import casadi as ca
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy.optimize import minimize
+from scipy.spatial import ConvexHull
+
+from swarmpc.formulation.ocp import certificate_terms, polytope_certificate_terms
+from swarmpc.model.geometry import box_certificate, point_box_distance
+
+
+def best_certificate(point, G, g, soft):
+    lam = ca.SX.sym("lam", G.shape[0])
+    margin, norm_sq = polytope_certificate_terms(ca.DM(point), lam, G, g)
+    solver = ca.nlpsol("cert", "ipopt", {"x": lam, "f": -margin, "g": norm_sq},
+                       {"print_time": False, "ipopt.print_level": 0, "ipopt.sb": "yes", "ipopt.tol": 1e-10})
+    best = -np.inf
+    for start in np.eye(G.shape[0]) / np.linalg.norm(G, axis=1)[:, None]:
+        out = solver(x0=start, lbx=0, ubx=np.inf, lbg=1.0 if soft else -np.inf, ubg=1.0)
+        if solver.stats()["success"]:
+            best = max(best, -float(out["f"]))
+    return best
+
+
+def projection_distance(point, vertices):
+    """Distance to the convex hull of ``vertices`` by a QP over convex weights."""
+    n = len(vertices)
+    result = minimize(
+        lambda w: np.sum((w @ vertices - point) ** 2),
+        np.full(n, 1.0 / n),
+        jac=lambda w: 2 * vertices @ (w @ vertices - point),
+        constraints=[{"type": "eq", "fun": lambda w: np.sum(w) - 1, "jac": lambda w: np.ones(n)}],
+        bounds=[(0, 1)] * n,
+        method="SLSQP",
+        options={"ftol": 1e-14, "maxiter": 500},
+    )
+    return float(np.sqrt(result.fun))
+
+
+def polytope(seed, dim):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(8 + 2 * dim, dim))
+    hull = ConvexHull(points)
+    G, g = hull.equations[:, :dim], -hull.equations[:, dim]
+    return G, g, points[hull.vertices]
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 10_000), st.sampled_from([2, 3]), st.floats(0.2, 3.0))
+def test_hard_certificate_equals_distance_outside(seed, dim, scale):
+    G, g, vertices = polytope(seed, dim)
+    direction = np.random.default_rng(seed + 1).normal(size=dim)
+    point = vertices.mean(axis=0) + direction / np.linalg.norm(direction) * (np.abs(vertices).max() + scale)
+    assert np.any(G @ point > g)
+    reference = projection_distance(point, vertices)
+    assert best_certificate(point, G, g, soft=False) == pytest.approx(reference, abs=1e-5)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 10_000), st.sampled_from([2, 3]), st.floats(0.0, 0.9))
+def test_soft_certificate_equals_penetration_inside(seed, dim, blend):
+    G, g, vertices = polytope(seed, dim)
+    centre = vertices.mean(axis=0)
+    point = centre + blend * (vertices[0] - centre)
+    assert np.all(G @ point < g)
+    depth = float(np.min(g - G @ point))  # hull facets are unit normals: the exit distance
+    assert best_certificate(point, G, g, soft=True) == pytest.approx(-depth, abs=1e-5)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-3, 3), min_size=3, max_size=3), st.lists(st.floats(0.05, 1.0), min_size=3, max_size=3))
+def test_box_certificate_is_feasible_and_tight(offset, half):
+    offset, half = np.array(offset), np.array(half)
+    lam = box_certificate(offset, half)
+    margin, norm_sq = certificate_terms(ca.DM(offset), ca.DM(lam), ca.DM(half))
+    assert float(norm_sq) == pytest.approx(1.0)
+    assert float(margin) == pytest.approx(point_box_distance(offset, half), abs=1e-9)
+
+
+def test_zero_dmin_hard_form_excludes_nothing():
+    """The trap of design.md section 9: with d_min = 0, lambda = 0 certifies a point inside."""
+    margin, norm_sq = certificate_terms(ca.DM([0.0, 0.0]), ca.DM.zeros(4), ca.DM([0.3, 0.3]))
+    assert float(margin) >= 0.0 and float(norm_sq) <= 1.0

@@ -1,0 +1,70 @@
+"""Every bad input: one line on stderr naming the field, exit status 2, no output folder."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from conftest import run_cli
+
+BASE = {"agents": [{"start": [-1, -1], "goal": [1, 1]}, {"start": [1, -1], "goal": [-1, 1]}]}
+
+
+def with_(**changes):
+    return {**BASE, **changes}
+
+
+CASES = {
+    "unknown key": (with_(colour="red"), "colour"),
+    "wrong vector length": ({"agents": [{"start": [0, 0, 0], "goal": [1, 1]}]}, "agents[0].start"),
+    "dim not 2/3": (with_(dim=4), "dim"),
+    "dt <= 0": (with_(dt=-0.1), "dt"),
+    "horizon <= 0": (with_(horizon=0), "horizon"),
+    "delta <= 0": (with_(delta=0.0), "delta"),
+    "NaN": (with_(kappa=float("nan")), "kappa"),
+    "inf in a vector": ({"agents": [{"start": [float("inf"), 0], "goal": [1, 1]}]}, "agents[0].start"),
+    "agents closer than delta at start": (
+        {"agents": [{"start": [0, 0], "goal": [1, 1]}, {"start": [0.1, 0.1], "goal": [-1, 1]}]}, "agents[1].start"),
+    "agents closer than delta at goal": (
+        {"agents": [{"start": [0, 0], "goal": [1, 1]}, {"start": [2, 2], "goal": [1.1, 1]}]}, "agents[1].goal"),
+    "start inside an obstacle": (
+        with_(obstacles=[{"box": {"center": [-1, -1], "half_size": [0.2, 0.2]}}]), "agents[0].start"),
+    "goal outside the workspace": (
+        {"workspace": {"lower": [-3, -3], "upper": [3, 3]}, "agents": [{"start": [0, 0], "goal": [3.5, 0]}]}, "agents[0].goal"),
+    "empty agent list": ({"agents": []}, "agents"),
+    "malformed polytope": (with_(obstacles=[{"polytope": {"G": [[1, 0], [0, 1]], "g": [1]}}]), "obstacles[0]"),
+    "hard with d_min 0": (with_(d_min=0), "d_min"),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_rejected_with_one_line(case, tmp_path):
+    data, field = CASES[case]
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    done = run_cli("run", str(path), "--out", str(out), "--quiet", cwd=tmp_path)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in done.stderr
+    assert field in lines[0]
+    assert not out.exists() and not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize(
+    "content,needle",
+    [("agents: [\n  {start: [0, 0]", "malformed YAML"), (None, "cannot read")],
+)
+def test_unreadable_files(content, needle, tmp_path):
+    path = tmp_path / "s.yaml"
+    if content is not None:
+        path.write_text(content)
+    done = run_cli("run", str(path), "--out", str(tmp_path / "out"), "--quiet")
+    assert done.returncode == 2 and needle in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_cli_option_value(tmp_path):
+    done = run_cli("run", "paper-2d", "--delta", "-1", "--out", str(tmp_path / "o"), "--quiet")
+    assert done.returncode == 2 and "delta" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "o").exists()
