@@ -207,6 +207,24 @@ def animate(
     typer.echo(str(path))
 
 
+@app.command()
+def view(
+    run_dir: Annotated[Path, typer.Argument(help="a run folder")],
+    out: Annotated[Path | None, typer.Option(help="output HTML [RUN_DIR/view.html]")] = None,
+    open_browser: Annotated[bool, typer.Option("--open", help="open it in the default browser")] = False,
+) -> None:
+    """Write one self-contained interactive HTML page of a run (works offline)."""
+    from swarmpc.viewer import write_view
+
+    if not (run_dir / "trajectory.npz").is_file():
+        fail(f"{run_dir}: not a run folder (no trajectory.npz)")
+    try:
+        path = write_view(run_dir, out=out, open_browser=open_browser)
+    except (ValueError, OSError) as err:
+        fail(str(err).splitlines()[0])
+    typer.echo(str(path))
+
+
 def main() -> None:
     """Console entry point: usage errors also exit with status 2 and one line."""
     try:

@@ -189,7 +189,7 @@ class Scenario(_Frozen):
     delta: ScalarOrVector = 0.3
     collision: Literal["hard", "soft"] = "hard"
     d_min: float = 0.05
-    kappa: float = 100.0
+    kappa: float = 1000.0
     discretization: Literal["euler", "zoh"] = "euler"
     seed: int = 0
     weights: Weights = Weights()

@@ -20,7 +20,7 @@ import numpy as np
 
 from swarmpc.config import Scenario, ScenarioError, scenario_from_dict
 
-PAPER = {"dt": 0.1, "horizon": 10, "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}}
+PAPER = {"dt": 0.1, "horizon": 10, "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}, "stop": {"max_steps": 600}}
 
 
 def paper_2d(delta: float = 0.3, **_: Any) -> dict[str, Any]:

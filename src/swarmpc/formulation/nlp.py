@@ -165,14 +165,23 @@ class CompiledNLP:
         guess: dict[str, Any] | np.ndarray,
         lam_x: np.ndarray | None = None,
         lam_g: np.ndarray | None = None,
+        fixed: dict[str, Any] | None = None,
     ) -> NLPSolution:
-        """Solve for parameter values ``params`` from a primal guess (and optional duals)."""
+        """Solve for parameter values ``params`` from a primal guess (and optional duals).
+
+        ``fixed`` pins named variable blocks to given values for this call only.
+        """
         x0 = guess if isinstance(guess, np.ndarray) else self.x_layout.pack(guess)
+        lbx, ubx = self.lbx, self.ubx
+        if fixed:
+            pinned = self.x_layout.pack(fixed, default=np.nan)
+            mask = ~np.isnan(pinned)
+            lbx, ubx = np.where(mask, pinned, lbx), np.where(mask, pinned, ubx)
         args: dict[str, Any] = {
-            "x0": np.clip(x0, self.lbx, self.ubx),
+            "x0": np.clip(x0, lbx, ubx),
             "p": self.p_layout.pack(params),
-            "lbx": self.lbx,
-            "ubx": self.ubx,
+            "lbx": lbx,
+            "ubx": ubx,
             "lbg": self.lbg,
             "ubg": self.ubg,
         }

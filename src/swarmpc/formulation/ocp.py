@@ -237,17 +237,20 @@ def build_local(
     (an inactive copy slot is unconstrained and costs nothing, so one built solver serves every
     neighbour count up to ``num_copies``).
 
-    Local objective (paper eq. 16): own cost + sum_b gamma_b'(v_b - z_b) + rho/2 ||v_b - z_b||^2.
+    Local objective (paper eq. 16): own cost + sum_b gamma_b'(v_b - z_b) + rho_b/2 ||v_b - z_b||^2,
+    with rho_b = rho * owner_weight on the own block and rho on the copies (block-weighted consensus:
+    the same problem with the own consensus rows scaled by sqrt(owner_weight)).
     """
     builder = ProblemBuilder()
     d, K, first = s.dim, s.num_constrained, s.first_constrained_step
     half = builder.parameter("delta", d)
     rho = builder.parameter("rho", 1)
+    owner_weight = builder.parameter("owner_weight", 1)
     X, _ = add_agent(builder, "", s)
     own = X[:d, first:]
     z_own = builder.parameter("Z", d, K)
     y_own = builder.parameter("Y", d, K)
-    builder.cost += consensus_penalty(own, z_own, y_own, rho)
+    builder.cost += consensus_penalty(own, z_own, y_own, rho * owner_weight)
     for c in range(num_copies):
         if dynamic_copies:
             copy = add_trajectory(builder, f"c{c}", s)[0][:d, first:]

@@ -2,7 +2,7 @@
 
 Agents that meet head-on (or four agents crossing a square) can settle into a symmetric
 equilibrium of the MPC: every agent far from its goal, none moving. When an agent has stayed
-slow and far from its goal for ``patience`` steps, its goal is temporarily replaced by a detour
+slow and far from its goal, with another agent close by, for ``patience`` steps, its goal is temporarily replaced by a detour
 point to the right of its goal direction (a right-hand rule: every blocked agent turns the same
 way, so a jam unwinds like a roundabout) for ``hold`` steps.
 """
@@ -18,7 +18,8 @@ import numpy as np
 class DeadlockPolicy:
     speed_threshold: float = 0.05
     distance_threshold: float = 0.2
-    patience: int = 8
+    patience: int = 4
+    neighbour_radius: float = 1.0
     hold: int = 15
     detour: float = 1.0
     angle_deg: float = 75.0
@@ -60,7 +61,10 @@ class DeadlockResolver:
         positions, speeds = states[:, :d], np.linalg.norm(states[:, d:], axis=1)
         to_goal = goals[:, :d] - positions
         distance = np.linalg.norm(to_goal, axis=1)
-        stalled = (speeds < p.speed_threshold) & (distance > p.distance_threshold)
+        gaps = np.max(np.abs(positions[:, None] - positions[None, :]), axis=2)
+        np.fill_diagonal(gaps, np.inf)
+        crowded = gaps.min(axis=1) < p.neighbour_radius if len(positions) > 1 else np.zeros(1, bool)
+        stalled = (speeds < p.speed_threshold) & (distance > p.distance_threshold) & crowded
         self._stalled = np.where(stalled, self._stalled + 1, 0)
         out = goals.copy()
         for i in np.flatnonzero((self._stalled >= p.patience) & (self._detour_left == 0)):

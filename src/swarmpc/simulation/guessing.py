@@ -19,6 +19,10 @@ class GuessProvider:
     * ``rrt``: an OMPL RRT-Connect path around the static obstacles inflated by d_min;
     * ``auto``: shifted while the agent's previous solve succeeded, otherwise RRT when the
       scenario has static obstacles and straight when it has none.
+
+    With ``rrt`` and ``auto`` the RRT path also steers: while static obstacles block the straight
+    line to an agent's goal, the MPC tracks a waypoint ``lookahead`` metres along the path
+    (:meth:`goals`), so a short horizon is not trapped in front of a wall.
     """
 
     def __init__(self, scn: Scenario, settings: OCPSettings, strategy: str | None = None) -> None:
@@ -29,10 +33,12 @@ class GuessProvider:
         uses_rrt = self.strategy == "rrt" or (self.strategy == "auto" and scn.obstacles)
         if uses_rrt:
             lower, upper = scn.bounds()
+            # 0.9 d_min: positions the hard form keeps exactly d_min away stay valid starts
             self._rrt = RRTGuess(
-                lower, upper, scn.obstacle_halfspaces(), inflate=scn.d_min, seed=scn.seed,
+                lower, upper, scn.obstacle_halfspaces(), inflate=0.9 * scn.d_min, seed=scn.seed,
                 time_budget=scn.solver.rrt_time_budget,
             )
+        self.lookahead = 1.5 * self.speed * settings.horizon * settings.dt
 
     @property
     def rrt_stats(self) -> dict[str, int] | None:
@@ -45,6 +51,20 @@ class GuessProvider:
             if guess is not None:
                 return guess
         return straight_line_guess(state, goal[: s.dim], s.dt, s.horizon, self.speed)
+
+    def goals(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """This step's MPC goals: an RRT waypoint for agents whose straight line is blocked."""
+        if self._rrt is None:
+            return goals
+        d = self.settings.dim
+        out = goals.copy()
+        for i, (state, goal) in enumerate(zip(states, goals)):
+            if self._rrt.line_of_sight(state[:d], goal[:d]):
+                continue
+            waypoint = self._rrt.waypoint(i, state[:d], goal[:d], self.lookahead)
+            if waypoint is not None:
+                out[i] = np.concatenate([waypoint, np.zeros(d)])
+        return out
 
     def guesses(self, states: np.ndarray, goals: np.ndarray, previous: PlanStep | None) -> np.ndarray:
         """(M, N+1, 2d) guesses for measured ``states`` (M, 2d)."""

@@ -80,7 +80,7 @@ def simulate(
         if stop_flag is not None and stop_flag.requested:
             interrupted = True
             break
-        step_goals = deadlocks.goals(step, states, goals)
+        step_goals = guesser.goals(states, deadlocks.goals(step, states, goals))
         guess = guesser.guesses(states, step_goals, previous)
         plan = solver.plan(states, step_goals, guess)
         control = plan.inputs[:, 0]

@@ -34,6 +34,7 @@ class StepRecord:
     fallback: np.ndarray
     max_slack: float
     admm_iterations: int | None
+    repaired: bool
     primal_residuals: tuple[float, ...]
     dual_residuals: tuple[float, ...]
     rho: tuple[float, ...]
@@ -47,6 +48,7 @@ class StepRecord:
             fallback=np.asarray(plan.fallback, bool),
             max_slack=plan.max_slack,
             admm_iterations=plan.admm_iterations,
+            repaired=plan.repaired,
             primal_residuals=tuple(plan.primal_residuals),
             dual_residuals=tuple(plan.dual_residuals),
             rho=tuple(plan.rho_history),
@@ -94,6 +96,7 @@ class RunResult:
             wall_time=wall_time,
         )
         summary["fallback_steps"] = int(sum(r.fallback.any() for r in records))
+        summary["admm_repairs"] = int(sum(r.repaired for r in records)) if is_admm else None
         if is_admm:
             summary["admm_tol"] = scenario.solver.tol
             summary["rho"] = scenario.solver.rho

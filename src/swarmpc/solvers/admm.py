@@ -38,7 +38,10 @@ class ADMMConfig:
     max_iter: int = 100
     tol: float = 1e-3
     adaptive_rho: bool = False
-    dynamic_copies: bool = True
+    dynamic_copies: bool = False
+    owner_weight: float = 5.0
+    repair: bool = True
+    coupling_margin: float | None = 0.5
     rho_bounds: tuple[float, float] = (1e-2, 1e3)
 
 
@@ -52,12 +55,14 @@ class LocalRequest:
     delta: np.ndarray
     rho: float
     rho_previous: float
+    owner_weight: float
     new_step: bool
     z_own: np.ndarray
     neighbours: tuple[int, ...]
     z_neighbours: np.ndarray
     neighbour_states: np.ndarray
     guess: np.ndarray
+    neighbour_plans: tuple[np.ndarray, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -130,8 +135,8 @@ class LocalAgent:
             self._gamma = {j: shift(y) for j, y in self._gamma.items() if j in request.neighbours}
             return
         rho = request.rho_previous
-        self._gamma_own = (self._gamma_own if self._gamma_own is not None else 0.0) + rho * (
-            last.own - request.z_own
+        self._gamma_own = (self._gamma_own if self._gamma_own is not None else 0.0) + (
+            rho * request.owner_weight * (last.own - request.z_own)
         )
         for slot, j in enumerate(request.neighbours):
             if j in self._last_neighbours:
@@ -157,18 +162,35 @@ class LocalAgent:
             return solution.x[f"Xc{slot}"][: self.settings.dim, self.settings.first_constrained_step :]
         return solution.x[f"C{slot}"]
 
+    def _pinned_copies(self, request: LocalRequest) -> dict[str, np.ndarray] | None:
+        """In a repair pass the copies are the neighbours' actual plans, held fixed."""
+        if request.neighbour_plans is None:
+            return None
+        states, inputs = request.neighbour_plans
+        if self.dynamic_copies:
+            pinned = {f"Xc{slot}": states[slot].T for slot in range(len(states))}
+            pinned.update({f"Uc{slot}": inputs[slot].T for slot in range(len(inputs))})
+            return pinned
+        return {f"C{slot}": z for slot, z in enumerate(request.z_neighbours)}
+
     def solve(self, request: LocalRequest) -> LocalResult:
         """Multiplier update for the new consensus, then the local NLP."""
         s = self.settings
-        self._multipliers_step(request)
+        repair = request.neighbour_plans is not None
+        if not request.neighbours:
+            # nobody holds a copy of this agent: no consensus block, no multipliers
+            self._gamma_own, self._gamma = None, {}
+        elif not repair:
+            self._multipliers_step(request)
         zeros = np.zeros_like(request.z_own)
         params: dict[str, np.ndarray | float] = {
             "x0": request.state,
             "goal": request.goal,
             "delta": request.delta,
             "rho": request.rho,
+            "owner_weight": request.owner_weight,
             "Z": request.z_own,
-            "Y": self._gamma_own if self._gamma_own is not None else zeros,
+            "Y": self._gamma_own if self._gamma_own is not None and not repair else zeros,
         }
         for slot in range(self.slots):
             active = slot < len(request.neighbours)
@@ -178,7 +200,7 @@ class LocalAgent:
             if active:
                 j = request.neighbours[slot]
                 params[f"Z{slot}"] = request.z_neighbours[slot]
-                params[f"Y{slot}"] = self._gamma.get(j, zeros)
+                params[f"Y{slot}"] = zeros if repair else self._gamma.get(j, zeros)
         same_shape = request.neighbours == self._last_neighbours
         if self._last is not None and same_shape and not request.new_step:
             point: dict[str, np.ndarray] = dict(self._last.x)
@@ -187,7 +209,7 @@ class LocalAgent:
             if self._last is not None and request.new_step and same_shape:
                 shifted = shift_blocks(self._last.x)
                 point.update({k: v for k, v in shifted.items() if k.startswith(("L", "A"))})
-        solution = self.nlp.solve(params, point)
+        solution = self.nlp.solve(params, point, fixed=self._pinned_copies(request))
         first = s.first_constrained_step
         n = len(request.neighbours)
         fallback = False
@@ -196,9 +218,12 @@ class LocalAgent:
             self._last = solution
             states, inputs = solution.x["X"].T, solution.x["U"].T
             copies = np.array([self._copy_positions(solution, slot) for slot in range(n)])
-            copies = copies.reshape(n, s.dim, -1)
+            copies = copies.reshape(n, s.dim, s.num_constrained)
             slack = [float(solution.x[f"A{slot}"].max()) for slot in range(n) if f"A{slot}" in solution.x]
-        elif not request.new_step and self._plan is not None and self._last_sent is not None and same_shape:
+        elif (
+            not request.new_step and not repair and self._plan is not None
+            and self._last_sent is not None and same_shape
+        ):
             # keep this step's last plan and transmit the same copies: a failed iterate
             # must not pull the consensus anywhere
             states, inputs = self._plan
@@ -252,9 +277,36 @@ class ADMMSolver:
     def close(self) -> None:
         self.executor.close()
 
-    def neighbours(self, states: np.ndarray) -> list[tuple[int, ...]]:
-        """Agents each agent couples with: every other agent (the paper's all-to-all copies)."""
-        return [tuple(j for j in range(self.num_agents) if j != i) for i in range(self.num_agents)]
+    def neighbours(self, guess: np.ndarray) -> list[tuple[int, ...]]:
+        """Agents each agent couples with this step (symmetric).
+
+        With ``coupling_margin`` None, every other agent (the paper's all-to-all copies). Otherwise
+        only agents whose guessed trajectories come within delta + d_min + margin (inf-norm) of
+        each other at some constrained step; pairs left out are checked after convergence and
+        coupled on demand if their plans conflict (see :meth:`plan`).
+        """
+        M = self.num_agents
+        if self.config.coupling_margin is None:
+            return [tuple(j for j in range(M) if j != i) for i in range(M)]
+        first, d = self.settings.first_constrained_step, self.settings.dim
+        reach = float(np.max(self.delta)) + self.settings.d_min + self.config.coupling_margin
+        positions = guess[:, first:, :d]
+        gaps = np.max(np.abs(positions[:, None] - positions[None, :]), axis=3).min(axis=2)
+        return [tuple(j for j in range(M) if j != i and gaps[i, j] < reach) for i in range(M)]
+
+    def conflicts(self, results: list[LocalResult], neighbours: list[tuple[int, ...]]) -> list[tuple[int, int]]:
+        """Uncoupled pairs whose own plans come closer than the coupling would allow."""
+        d = self.settings.dim
+        limit = float(np.max(self.delta)) + self.settings.d_min
+        pairs = []
+        for i in range(self.num_agents):
+            for j in range(i + 1, self.num_agents):
+                if j in neighbours[i]:
+                    continue
+                gap = np.max(np.abs(results[i].own - results[j].own), axis=0).min()
+                if gap < limit:
+                    pairs.append((i, j))
+        return pairs
 
     def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep:
         """One MPC step: ADMM iterations until consensus, then every agent's own plan."""
@@ -265,7 +317,7 @@ class ADMMSolver:
             z = np.transpose(guess[:, first:, : s.dim], (0, 2, 1)).copy()
         else:
             z = np.concatenate([self._z[:, :, 1:], self._z[:, :, -1:]], axis=2)
-        neighbours = self.neighbours(states)
+        neighbours = self.neighbours(guess)
         rho = rho_previous = self._rho
         primal: list[float] = []
         dual: list[float] = []
@@ -273,41 +325,42 @@ class ADMMSolver:
         agent_times = np.zeros(M)
         failures = 0
         results: list[LocalResult] = []
+        converged = False
         for iteration in range(cfg.max_iter):
             requests = [
-                LocalRequest(
-                    agent=i,
-                    state=states[i],
-                    goal=goals[i],
-                    delta=self.delta,
-                    rho=rho,
-                    rho_previous=rho_previous,
-                    new_step=iteration == 0,
-                    z_own=z[i],
-                    neighbours=neighbours[i],
-                    z_neighbours=z[list(neighbours[i])] if neighbours[i] else np.zeros((0, s.dim, z.shape[2])),
-                    neighbour_states=states[list(neighbours[i])],
-                    guess=guess[i],
-                )
+                self._request(i, states, goals, guess, neighbours[i], z, rho, rho_previous, iteration == 0)
                 for i in range(M)
             ]
             results = self.executor.solve(requests)
             agent_times += [r.solve_time for r in results]
             failures += sum(not r.success for r in results)
-            z_new, r_norm, count = self._average(results, neighbours)
-            s_norm = rho * np.sqrt(np.sum(count[:, None, None] * (z_new - z) ** 2) / max(count.sum() * z[0].size, 1))
+            z_new, r_norm, weights = self._average(results, neighbours)
+            s_norm = self._dual_residual(z_new - z, weights, neighbours, rho)
             primal.append(r_norm)
             dual.append(float(s_norm))
             rhos.append(rho)
             z = z_new
-            if r_norm <= cfg.tol and s_norm <= cfg.tol:
-                break
+            converged = r_norm <= cfg.tol and s_norm <= cfg.tol
+            if converged:
+                missing = self.conflicts(results, neighbours)
+                if not missing:
+                    break
+                converged = False
+                coupled = [set(n) for n in neighbours]
+                for i, j in missing:
+                    coupled[i].add(j)
+                    coupled[j].add(i)
+                neighbours = [tuple(sorted(n)) for n in coupled]
             rho_previous = rho
             if cfg.adaptive_rho:
                 if r_norm > 10 * s_norm:
                     rho = min(rho * 2, cfg.rho_bounds[1])
                 elif s_norm > 10 * r_norm:
                     rho = max(rho / 2, cfg.rho_bounds[0])
+        if not converged and cfg.repair:
+            results = self._repair(states, goals, guess, neighbours, z, rho, results)
+            agent_times += [r.solve_time for r in results]
+            failures += sum(not r.success for r in results)
         self._z = z
         self._rho = rho if cfg.adaptive_rho else cfg.rho
         plans_x = np.array([r.states for r in results])
@@ -323,17 +376,76 @@ class ADMMSolver:
             failures=failures,
             fallback=fallback,
             admm_iterations=len(primal),
+            repaired=not converged and cfg.repair,
             primal_residuals=primal,
             dual_residuals=dual,
             rho_history=rhos,
         )
 
+    def _request(
+        self, i: int, states: np.ndarray, goals: np.ndarray, guess: np.ndarray, neighbours: tuple[int, ...],
+        z: np.ndarray, rho: float, rho_previous: float, new_step: bool,
+        plans: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> LocalRequest:
+        first = self.settings.first_constrained_step
+        if plans is None:
+            z_neighbours = z[list(neighbours)]
+        else:
+            z_neighbours = np.transpose(plans[0][:, first:, : self.settings.dim], (0, 2, 1))
+        return LocalRequest(
+            agent=i,
+            state=states[i],
+            goal=goals[i],
+            delta=self.delta,
+            rho=rho,
+            rho_previous=rho_previous,
+            owner_weight=self.config.owner_weight if neighbours else 0.0,
+            new_step=new_step,
+            z_own=z[i],
+            neighbours=neighbours,
+            z_neighbours=z_neighbours.reshape(len(neighbours), self.settings.dim, z.shape[2]),
+            neighbour_states=states[list(neighbours)],
+            guess=guess[i],
+            neighbour_plans=plans,
+        )
+
+    def _repair(
+        self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray, neighbours: list[tuple[int, ...]],
+        z: np.ndarray, rho: float, results: list[LocalResult],
+    ) -> list[LocalResult]:
+        """Consensus repair when ADMM stops at the cap: agents re-plan one after another against
+        the others' current own plans (held fixed). Each agent respects the final plans of those
+        before it and the plans those after it will respect, so every pair ends up feasible
+        whenever the solves succeed."""
+        first = self.settings.first_constrained_step
+        repaired = list(results)
+        for i in range(self.num_agents):
+            others = list(neighbours[i])
+            if not others:
+                continue
+            plans = (
+                np.array([repaired[j].states for j in others]),
+                np.array([repaired[j].inputs for j in others]),
+            )
+            own_z = z.copy()
+            own_z[i] = repaired[i].states[first:, : self.settings.dim].T
+            request = self._request(i, states, goals, guess, neighbours[i], own_z, rho, rho, False, plans)
+            repaired[i] = self.executor.solve([request])[0]
+        return repaired
+
     def _average(
         self, results: list[LocalResult], neighbours: list[tuple[int, ...]]
     ) -> tuple[np.ndarray, float, np.ndarray]:
-        """Consensus positions z (M, d, K), the RMS primal residual, and copies per agent."""
-        total = np.array([r.own for r in results])
-        count = np.ones(self.num_agents)
+        """Consensus positions z (M, d, K), the RMS primal residual, and the own-block weights.
+
+        z_j is the rho_b-weighted mean of every copy of agent j: its own plan (weight
+        owner_weight, or 0 for an agent nobody couples with, whose z is then its plan) and the
+        copies its neighbours hold (weight 1).
+        """
+        own = np.array([r.own for r in results])
+        weights = np.array([self.config.owner_weight if n else 1.0 for n in neighbours])
+        total = weights[:, None, None] * own
+        count = weights.copy()
         for r in results:
             for slot, j in enumerate(neighbours[r.agent]):
                 total[j] += r.copies[slot]
@@ -347,4 +459,16 @@ class ADMMSolver:
             for slot, j in enumerate(neighbours[r.agent]):
                 squared += float(np.sum((r.copies[slot] - z[j]) ** 2))
                 entries += r.copies[slot].size
-        return z, float(np.sqrt(squared / max(entries, 1))), count
+        return z, float(np.sqrt(squared / max(entries, 1))), weights
+
+    def _dual_residual(
+        self, change: np.ndarray, weights: np.ndarray, neighbours: list[tuple[int, ...]], rho: float
+    ) -> float:
+        """RMS of rho_b (z - z_prev) over every consensus block (Boyd et al. sec. 3.3 with block
+        penalties rho_b: rho * owner_weight for own blocks, rho for copies). Agents nobody
+        couples with hold no consensus block and do not count."""
+        coupled = np.array([bool(n) for n in neighbours])
+        copies = np.array([sum(j in n for n in neighbours) for j in range(self.num_agents)])
+        per_agent = (weights**2 * coupled + copies) * np.sum(change**2, axis=(1, 2))
+        entries = (coupled + copies).sum() * change[0].size
+        return float(rho * np.sqrt(per_agent.sum() / max(entries, 1)))

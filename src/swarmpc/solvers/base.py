@@ -27,6 +27,7 @@ class PlanStep:
     failures: int
     fallback: np.ndarray
     admm_iterations: int | None = None
+    repaired: bool = False
     primal_residuals: list[float] = field(default_factory=list)
     dual_residuals: list[float] = field(default_factory=list)
     rho_history: list[float] = field(default_factory=list)

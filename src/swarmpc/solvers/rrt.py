@@ -477,6 +477,28 @@ class RRTGuess:
         self._goals[agent_id] = goal
         return path.copy()
 
+    def line_of_sight(self, start_pos: np.ndarray, goal_pos: np.ndarray) -> bool:
+        """Whether the straight segment between two points is valid (clear of inflated obstacles)."""
+        dim = self._validity.dim
+        a = _to_point(start_pos, dim, "start_pos")
+        b = _to_point(goal_pos, dim, "goal_pos")
+        return bool(self._validity.path_valid(np.vstack([a, b])))
+
+    def waypoint(
+        self, agent_id: int, start_pos: np.ndarray, goal_pos: np.ndarray, lookahead: float
+    ) -> np.ndarray | None:
+        """The point ``lookahead`` metres along the agent's path (the goal if nearer), or None."""
+        path = self.path_for(agent_id, start_pos, goal_pos)
+        if path is None:
+            return None
+        lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
+        travelled = np.concatenate([[0.0], np.cumsum(lengths)])
+        if travelled[-1] <= lookahead:
+            return path[-1].copy()
+        k = int(np.searchsorted(travelled, lookahead) - 1)
+        fraction = (lookahead - travelled[k]) / max(lengths[k], 1e-12)
+        return path[k] + fraction * (path[k + 1] - path[k])
+
     def guess(
         self,
         agent_id: int,

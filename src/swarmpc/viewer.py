@@ -1,0 +1,951 @@
+"""Interactive HTML viewer of a run folder (the backend of ``swarmpc view RUN_DIR``).
+
+:func:`build_figure` turns a run folder (``trajectory.npz``, ``summary.json``,
+``scenario.yaml``) into an animated plotly figure; :func:`write_view` writes it as ONE
+self-contained HTML file (plotly.js embedded, nothing fetched from a network), so the page
+opens offline from a ``file://`` URL and can be attached to a report or an issue.
+
+The page shows, in 2D and in 3D:
+
+* per agent: its moving position marker (trace name ``agent i``), the box of half-size delta
+  around it (drawn red while another agent is inside it, i.e. in collision), its trail (the
+  path so far), its whole path (faint), start (circle) and goal (star in 2D, diamond in 3D)
+  markers;
+* the static obstacles (filled polygons in 2D, translucent hull meshes in 3D) and the
+  workspace outline;
+* animation frames over time (at most about 200), play/pause buttons and a time slider in
+  seconds;
+* a hover card on each agent: id, speed |v|, distance to its goal, and the distance to its
+  nearest neighbour in the inf-norm and the Euclidean norm at that instant;
+* the closest approach of the run (a marker at the midpoint of the closest pair at that
+  instant, annotated ``closest approach: X m (inf-norm), t = Y s``) and a title with the
+  scenario, method, collisions and the minimum separation over delta.
+
+Every trace of the figure carries ``meta = {"role": ..., "agent": i}`` (roles: agent, box,
+trail, path, start, goal, obstacle, obstacle-edges, workspace, closest, closest-pair) so that
+tests and scripts find the traces of one kind without relying on their order. A frame holds
+only what changes (positions, hover data, collision colours) of the traces it names by index
+in ``frame.traces``; plotly.js merges it into those traces.
+
+The ``swarmpc view RUN_DIR [--out FILE.html] [--open]`` command maps onto
+``write_view(RUN_DIR, out=FILE, open_browser=OPEN)``.
+
+Only :mod:`swarmpc.config` is imported from the package; plotly (``pip install plotly``, the
+``view`` extra) and scipy are imported here.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import os
+import webbrowser
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from swarmpc.config import Scenario, load_scenario
+
+__all__ = [
+    "MAX_FRAMES",
+    "TRAIL_POINTS",
+    "ClosestApproach",
+    "Run",
+    "build_figure",
+    "closest_approach",
+    "figure_dict",
+    "frame_indices",
+    "load_run",
+    "polytope_vertices",
+    "write_view",
+]
+
+MAX_FRAMES = 200
+"""Animation frames are subsampled to at most about this many (plus the closest approach)."""
+
+_DIGITS = 4  # coordinates are rounded to 0.1 mm in the page (trails and boxes to 1 mm)
+TRAIL_POINTS = 120
+"""At most this many points in an agent's trail in one frame (see _trail_indices)."""
+_OBSTACLE_FILL = "rgba(90, 98, 112, 0.45)"
+_OBSTACLE_LINE = "rgb(60, 66, 78)"
+_WORKSPACE_LINE = "rgb(120, 120, 120)"
+_CLOSEST_COLOR = "rgb(214, 39, 40)"
+
+
+# --------------------------------------------------------------------------------------- data
+@dataclass
+class Run:
+    """The arrays and metadata of one run folder."""
+
+    run_dir: Path
+    t: np.ndarray  # (T+1,)
+    positions: np.ndarray  # (T+1, M, d)
+    velocities: np.ndarray  # (T+1, M, d)
+    goals: np.ndarray  # (M, d) goal positions
+    delta: np.ndarray  # (d,)
+    dt: float
+    summary: dict[str, Any] = field(default_factory=dict)
+    scenario: Scenario | None = None
+
+    @property
+    def dim(self) -> int:
+        return int(self.positions.shape[2])
+
+    @property
+    def num_agents(self) -> int:
+        return int(self.positions.shape[1])
+
+    @property
+    def name(self) -> str:
+        if self.scenario is not None:
+            return self.scenario.name
+        return str(self.summary.get("scenario", self.run_dir.name))
+
+
+def load_run(run_dir: str | Path) -> Run:
+    """Read ``trajectory.npz`` (required), ``summary.json`` and ``scenario.yaml`` (optional)."""
+    folder = Path(run_dir)
+    traj_file = folder / "trajectory.npz"
+    if not traj_file.is_file():
+        raise FileNotFoundError(f"{folder}: no trajectory.npz (is this a run folder?)")
+    with np.load(traj_file, allow_pickle=False) as data:
+        states = np.asarray(data["states"], float)
+        if states.ndim != 3 or states.shape[2] % 2:
+            raise ValueError(f"{traj_file}: states must be (T+1, M, 2d), got {states.shape}")
+        dim = states.shape[2] // 2
+        dt = float(data["dt"]) if "dt" in data else 0.1
+        t = np.asarray(data["t"], float) if "t" in data else dt * np.arange(states.shape[0])
+        goals = np.asarray(data["goals"], float) if "goals" in data else None
+        delta_raw = np.asarray(data["delta"], float) if "delta" in data else None
+
+    summary: dict[str, Any] = {}
+    summary_file = folder / "summary.json"
+    if summary_file.is_file():
+        loaded = json.loads(summary_file.read_text())
+        summary = loaded if isinstance(loaded, dict) else {}
+
+    scenario: Scenario | None = None
+    scenario_file = folder / "scenario.yaml"
+    if scenario_file.is_file():
+        scenario = load_scenario(scenario_file)
+        if scenario.dim != dim:
+            raise ValueError(
+                f"{folder}: scenario.yaml has dim {scenario.dim} but the trajectory has dim {dim}"
+            )
+
+    if goals is None:
+        if scenario is None:
+            goals = states[-1]
+        else:
+            goals = scenario.goal_states()
+    if delta_raw is None:
+        delta_raw = scenario.delta_vector if scenario is not None else np.array(0.3)
+    delta = np.broadcast_to(delta_raw, (dim,)).astype(float).copy()
+    return Run(
+        run_dir=folder,
+        t=t,
+        positions=states[:, :, :dim],
+        velocities=states[:, :, dim:],
+        goals=np.asarray(goals, float)[:, :dim],
+        delta=delta,
+        dt=dt,
+        summary=summary,
+        scenario=scenario,
+    )
+
+
+@dataclass(frozen=True)
+class ClosestApproach:
+    """The smallest inf-norm distance between two agents over the whole run."""
+
+    distance: float  # min over k, i < j of ||p_i(k) - p_j(k)||_inf  [m]
+    step: int  # the time index k where it happens
+    time: float  # t[k] [s]
+    pair: tuple[int, int]  # (i, j), i < j
+    ratio: float  # min over k, i < j of max_a |p_i,a - p_j,a| / delta_a (< 1: collision)
+
+
+def closest_approach(positions: np.ndarray, t: np.ndarray, delta: np.ndarray) -> ClosestApproach | None:
+    """Closest pair of agents over the run (None with fewer than two agents)."""
+    positions = np.asarray(positions, float)
+    steps, m, _ = positions.shape
+    if m < 2:
+        return None
+    iu, ju = np.triu_indices(m, k=1)
+    best = (math.inf, 0, 0)
+    best_ratio = math.inf
+    chunk = max(1, 2_000_000 // max(1, len(iu) * positions.shape[2]))
+    for start in range(0, steps, chunk):
+        block = positions[start : start + chunk]
+        gaps = np.abs(block[:, iu, :] - block[:, ju, :])  # (K, pairs, d)
+        dist = gaps.max(axis=2)
+        flat = int(np.nanargmin(dist)) if np.isfinite(dist).any() else -1
+        if flat >= 0:
+            k, pair = divmod(flat, len(iu))
+            if dist[k, pair] < best[0]:
+                best = (float(dist[k, pair]), start + k, pair)
+        ratio = (gaps / delta).max(axis=2)
+        if np.isfinite(ratio).any():
+            best_ratio = min(best_ratio, float(np.nanmin(ratio)))
+    if not math.isfinite(best[0]):
+        return None
+    distance, step, pair = best
+    return ClosestApproach(
+        distance=distance,
+        step=step,
+        time=float(t[step]),
+        pair=(int(iu[pair]), int(ju[pair])),
+        ratio=best_ratio,
+    )
+
+
+def frame_indices(steps: int, max_frames: int = MAX_FRAMES, keep: int | None = None) -> np.ndarray:
+    """Time indices of the animation frames: all of them, or about ``max_frames`` evenly spread.
+
+    The first and the last index are always kept, and so is ``keep`` (the closest approach) by
+    replacing the nearest interior index.
+    """
+    if steps <= max_frames:
+        return np.arange(steps)
+    idx = np.unique(np.round(np.linspace(0, steps - 1, max(2, max_frames))).astype(int))
+    if keep is not None and 0 < keep < steps - 1 and keep not in idx:
+        interior = np.arange(1, len(idx) - 1)
+        if len(interior):
+            nearest = interior[np.argmin(np.abs(idx[interior] - keep))]
+            idx[nearest] = keep
+            idx = np.unique(idx)
+    return idx
+
+
+# ----------------------------------------------------------------------------------- geometry
+def _chebyshev_center(G: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Centre and radius of the largest ball in {p : G p <= g} (None: empty, flat or unbounded)."""
+    from scipy.optimize import linprog
+
+    d = G.shape[1]
+    norms = np.linalg.norm(G, axis=1)
+    cost = np.zeros(d + 1)
+    cost[-1] = -1.0
+    res = linprog(
+        cost,
+        A_ub=np.hstack([G, norms[:, None]]),
+        b_ub=g,
+        bounds=[(None, None)] * d + [(0, None)],
+        method="highs",
+    )
+    if res.status != 0 or res.x is None or res.x[-1] <= 1e-9:
+        return None
+    return res.x[:d], float(res.x[-1])
+
+
+def polytope_vertices(
+    G: np.ndarray, g: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> np.ndarray | None:
+    """Vertices of {p : G p <= g} clipped to the box [lower, upper] (None when that is empty).
+
+    In 2D they are ordered counter-clockwise (a polygon); in 3D they are the hull's points.
+    """
+    from scipy.spatial import ConvexHull, HalfspaceIntersection
+
+    G = np.asarray(G, float)
+    g = np.asarray(g, float)
+    d = G.shape[1]
+    eye = np.eye(d)
+    G_all = np.vstack([G, eye, -eye])
+    g_all = np.concatenate([g, np.asarray(upper, float), -np.asarray(lower, float)])
+    centre = _chebyshev_center(G_all, g_all)
+    if centre is None:
+        return None
+    try:
+        hs = HalfspaceIntersection(np.hstack([G_all, -g_all[:, None]]), centre[0])
+        points = np.unique(np.round(hs.intersections, 9), axis=0)
+        hull = ConvexHull(points)
+    except Exception:  # qhull: degenerate polytope
+        return None
+    return points[hull.vertices]
+
+
+def _hull_mesh(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
+    """Triangles (i, j, k rows) of the 3D hull of ``points`` and its true edges (not diagonals)."""
+    from scipy.spatial import ConvexHull
+
+    hull = ConvexHull(points)
+    faces = hull.simplices
+    normals = hull.equations[:, :3]
+    by_edge: dict[tuple[int, int], list[int]] = {}
+    for f, tri in enumerate(faces):
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            key = (int(min(a, b)), int(max(a, b)))
+            by_edge.setdefault(key, []).append(f)
+    edges = [
+        key
+        for key, adjacent in by_edge.items()
+        if len(adjacent) != 2 or float(normals[adjacent[0]] @ normals[adjacent[1]]) < 1 - 1e-7
+    ]
+    return hull.points, faces, edges
+
+
+def _segments(points: np.ndarray, edges: list[tuple[int, int]]) -> list[list[float | None]]:
+    """Coordinates per axis of the line segments ``edges``, separated by None gaps."""
+    coords: list[list[float | None]] = [[] for _ in range(points.shape[1])]
+    for a, b in edges:
+        for axis in range(points.shape[1]):
+            coords[axis].extend([_round(points[a, axis]), _round(points[b, axis]), None])
+    return coords
+
+
+_CUBE_EDGES = [
+    (0, 1), (1, 3), (3, 2), (2, 0),  # bottom
+    (4, 5), (5, 7), (7, 6), (6, 4),  # top
+    (0, 4), (1, 5), (2, 6), (3, 7),  # verticals
+]  # fmt: skip
+
+
+def _box_lines(lower: np.ndarray, upper: np.ndarray, digits: int = _DIGITS) -> list[list[float | None]]:
+    """Outline of the box [lower, upper]: a closed rectangle in 2D, a wireframe cube in 3D."""
+    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    if lo.size == 2:
+        xs = [lo[0], hi[0], hi[0], lo[0], lo[0]]
+        ys = [lo[1], lo[1], hi[1], hi[1], lo[1]]
+        return [[_round(v, digits) for v in xs], [_round(v, digits) for v in ys]]
+    corners = np.array([[(hi if (n >> a) & 1 else lo)[a] for a in range(3)] for n in range(8)])
+    # path through all 12 edges: bottom loop, top loop, then the 4 verticals (None-separated)
+    order = [0, 1, 3, 2, 0, 4, 5, 7, 6, 4, None, 1, 5, None, 3, 7, None, 2, 6]
+    return [
+        [None if n is None else _round(corners[n, axis], digits) for n in order] for axis in range(3)
+    ]
+
+
+# ------------------------------------------------------------------------------------ helpers
+def _round(value: float, digits: int = _DIGITS) -> float | None:
+    value = float(value)
+    if not math.isfinite(value):
+        return None
+    return round(value, digits)
+
+
+def _rlist(values: np.ndarray, digits: int = _DIGITS) -> list[float | None]:
+    return [_round(v, digits) for v in np.ravel(values)]
+
+
+def _trail_indices(frames_k: np.ndarray, k_pos: int, cap: int = TRAIL_POINTS) -> np.ndarray:
+    """Time indices of the trail at frame ``k_pos``: every frame so far, or at most ``cap``.
+
+    Past ``cap`` points the older half of the trail is thinned evenly and the recent half kept
+    at full frame resolution (the faint whole path underneath stays exact), which keeps the
+    page's size linear, not quadratic, in the number of frames.
+    """
+    so_far = frames_k[: k_pos + 1]
+    if len(so_far) <= cap:
+        return so_far
+    recent = cap // 2
+    older = so_far[: len(so_far) - recent]
+    pick = np.unique(np.round(np.linspace(0, len(older) - 1, cap - recent)).astype(int))
+    return np.concatenate([older[pick], so_far[len(so_far) - recent :]])
+
+
+def _palette(m: int) -> list[str]:
+    from plotly.colors import qualitative
+
+    base = list(qualitative.Plotly) + [c for c in qualitative.Dark24 if c not in qualitative.Plotly]
+    return [base[i % len(base)] for i in range(m)]
+
+
+def _rgba(color: str, alpha: float) -> str:
+    color = color.strip()
+    if color.startswith("#") and len(color) == 7:
+        r, g, b = (int(color[i : i + 2], 16) for i in (1, 3, 5))
+        return f"rgba({r}, {g}, {b}, {alpha})"
+    if color.startswith("rgb("):
+        return color.replace("rgb(", "rgba(").replace(")", f", {alpha})")
+    return color
+
+
+def _template(name: str) -> dict[str, Any]:
+    """A named plotly template as a plain dict (an unvalidated figure cannot resolve names)."""
+    import plotly.io as pio
+
+    return pio.templates[name].to_plotly_json()
+
+
+def _neighbour_table(positions: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, ...]:
+    """For one instant (M, d): nearest neighbour of every agent in the inf- and the 2-norm.
+
+    Returns (inf distance, inf neighbour, 2-norm distance, 2-norm neighbour, separation/delta),
+    each (M,); distances are inf and neighbours -1 for a lone agent.
+    """
+    m = positions.shape[0]
+    diff = positions[:, None, :] - positions[None, :, :]
+    d_inf = np.abs(diff).max(axis=2)
+    d_two = np.linalg.norm(diff, axis=2)
+    ratio = (np.abs(diff) / delta).max(axis=2)
+    for table in (d_inf, d_two, ratio):
+        np.fill_diagonal(table, np.inf)
+    if m < 2:
+        none = np.full(m, np.inf)
+        return none, np.full(m, -1), none, np.full(m, -1), none
+    n_inf = np.argmin(d_inf, axis=1)
+    n_two = np.argmin(d_two, axis=1)
+    rows = np.arange(m)
+    return d_inf[rows, n_inf], n_inf, d_two[rows, n_two], n_two, ratio.min(axis=1)
+
+
+def _title(run: Run, closest: ClosestApproach | None) -> str:
+    s = run.summary
+    method = s.get("method") or (run.scenario.solver.method if run.scenario else "?")
+    collision = s.get("collision") or (run.scenario.collision if run.scenario else "?")
+    collisions = s.get("collisions", "?")
+    if isinstance(collisions, (list, tuple)):
+        collisions = len(collisions)
+    if closest is not None:
+        sep = f"min separation {closest.distance:.3f} m (inf-norm), min separation / δ = {closest.ratio:.2f}"
+    elif isinstance(s.get("min_separation_inf"), (int, float)):
+        sep = f"min separation {float(s['min_separation_inf']):.3f} m (inf-norm)"
+    else:
+        sep = "single agent"
+    delta = run.delta
+    if np.allclose(delta, delta[0]):
+        delta_text = f"{delta[0]:.3g} m"
+    else:
+        delta_text = "(" + ", ".join(f"{v:.3g}" for v in delta) + ") m"
+    extra = []
+    if "all_reached" in s:
+        extra.append("all goals reached" if s["all_reached"] else "goals NOT all reached")
+    if isinstance(s.get("cost"), (int, float)) and math.isfinite(s["cost"]):
+        extra.append(f"cost {s['cost']:.4g}")
+    name, method, collision = (html.escape(str(v)) for v in (run.name, method, collision))
+    head = f"<b>{name}</b> · {method} · {collision} collision avoidance"
+    line2 = (
+        f"collisions: {html.escape(str(collisions))} · {sep} · δ = {delta_text} · "
+        f"{run.num_agents} agents, {len(run.t) - 1} steps"
+    )
+    if extra:
+        line2 += " · " + " · ".join(extra)
+    return f"{head}<br><span style='font-size:12px'>{line2}</span>"
+
+
+# -------------------------------------------------------------------------------------- figure
+def build_figure(run_dir: str | Path, max_frames: int = MAX_FRAMES):  # -> plotly.graph_objects.Figure
+    """The animated plotly figure of a run folder (2D or 3D after the trajectory's dimension).
+
+    The figure is validated by plotly, which takes a few seconds for a large run;
+    :func:`write_view` skips that step (the same dictionary, written without validation).
+    """
+    import plotly.graph_objects as go
+
+    return go.Figure(figure_dict(run_dir, max_frames))
+
+
+def figure_dict(run_dir: str | Path, max_frames: int = MAX_FRAMES) -> dict[str, Any]:
+    """The figure of :func:`build_figure` as a plain plotly dictionary (data, layout, frames)."""
+    run = load_run(run_dir)
+    d, m = run.dim, run.num_agents
+    is3d = d == 3
+    P, V, t, delta = run.positions, run.velocities, run.t, run.delta
+    steps = P.shape[0]
+    colors = _palette(m)
+    closest = closest_approach(P, t, delta)
+    frames_k = frame_indices(steps, max_frames, keep=closest.step if closest else None)
+
+    # ---- axis ranges: workspace (or padded starts/goals) and everything that moved, fixed
+    if run.scenario is not None:
+        lo, hi = (np.asarray(b, float) for b in run.scenario.bounds())
+    else:
+        lo, hi = np.full(d, np.inf), np.full(d, -np.inf)
+    finite = P[np.isfinite(P).all(axis=2)]
+    if finite.size:
+        lo = np.minimum(lo, finite.min(axis=0) - delta)
+        hi = np.maximum(hi, finite.max(axis=0) + delta)
+    lo = np.minimum(lo, run.goals.min(axis=0) - delta)
+    hi = np.maximum(hi, run.goals.max(axis=0) + delta)
+    obstacles = run.scenario.obstacle_halfspaces() if run.scenario is not None else []
+    span = np.maximum(hi - lo, 1e-6)
+    far_lo, far_hi = lo - 10 * span - 10, hi + 10 * span + 10
+    for G, g in obstacles:  # bounded obstacles extend the view; unbounded ones are clipped
+        verts = polytope_vertices(G, g, far_lo, far_hi)
+        if verts is not None and np.all(verts > far_lo + 1e-6) and np.all(verts < far_hi - 1e-6):
+            lo, hi = np.minimum(lo, verts.min(axis=0)), np.maximum(hi, verts.max(axis=0))
+    pad = 0.03 * np.maximum(hi - lo, 1e-6).max()
+    lo, hi = lo - pad, hi + pad
+
+    traces: list[Any] = []
+
+    def axes(coords: list) -> dict[str, Any]:
+        keys = ("x", "y", "z")[:d]
+        return dict(zip(keys, coords))
+
+    kind = "scatter3d" if is3d else "scatter"
+
+    def scatter(**kwargs: Any) -> dict[str, Any]:
+        return {"type": kind, **kwargs}
+
+    # ---- static: workspace, obstacles
+    if run.scenario is not None and run.scenario.workspace is not None:
+        ws_lo = np.asarray(run.scenario.workspace.lower, float)
+        ws_hi = np.asarray(run.scenario.workspace.upper, float)
+        traces.append(
+            scatter(
+                **axes(_box_lines(ws_lo, ws_hi)),
+                mode="lines",
+                # dashed in 2D; solid in 3D, where dashes read as the scene's grid lines
+                line=dict(color=_WORKSPACE_LINE, width=2 if is3d else 1.5, dash="solid" if is3d else "dash"),
+                name="workspace",
+                hoverinfo="skip",
+                meta={"role": "workspace"},
+            )
+        )
+    for n, (G, g) in enumerate(obstacles):
+        verts = polytope_vertices(G, g, lo, hi)
+        if verts is None:
+            continue
+        label = f"obstacle {n}"
+        common = dict(
+            name="obstacles",
+            legendgroup="obstacles",
+            showlegend=n == 0,
+            meta={"role": "obstacle", "index": n},
+        )
+        if not is3d:
+            closed = np.vstack([verts, verts[:1]])
+            traces.append(
+                dict(
+                    type="scatter",
+                    x=_rlist(closed[:, 0]),
+                    y=_rlist(closed[:, 1]),
+                    mode="lines",
+                    fill="toself",
+                    fillcolor=_OBSTACLE_FILL,
+                    line=dict(color=_OBSTACLE_LINE, width=1.5),
+                    hoveron="fills",
+                    text=label,
+                    hoverinfo="text",
+                    **common,
+                )
+            )
+        else:
+            points, faces, edges = _hull_mesh(verts)
+            traces.append(
+                dict(
+                    type="mesh3d",
+                    x=_rlist(points[:, 0]),
+                    y=_rlist(points[:, 1]),
+                    z=_rlist(points[:, 2]),
+                    i=faces[:, 0].tolist(),
+                    j=faces[:, 1].tolist(),
+                    k=faces[:, 2].tolist(),
+                    color="rgb(110, 118, 132)",
+                    opacity=0.35,
+                    flatshading=True,
+                    hovertext=label,
+                    hoverinfo="text",
+                    **common,
+                )
+            )
+            traces.append(
+                dict(
+                    type="scatter3d",
+                    **axes(_segments(points, edges)),
+                    mode="lines",
+                    line=dict(color=_OBSTACLE_LINE, width=3),
+                    name=f"{label} edges",
+                    legendgroup="obstacles",
+                    showlegend=False,
+                    hoverinfo="skip",
+                    meta={"role": "obstacle-edges", "index": n},
+                )
+            )
+
+    # ---- static per agent: whole path (faint), start, goal
+    goal_symbol = "diamond" if is3d else "star"
+    start_symbol = "circle-open" if is3d else "circle"
+    for i in range(m):
+        group = dict(legendgroup=f"agent {i}", showlegend=False)
+        traces.append(
+            scatter(
+                **axes([_rlist(P[:, i, a]) for a in range(d)]),
+                mode="lines",
+                line=dict(color=_rgba(colors[i], 0.35), width=2 if is3d else 1.5, dash="dot"),
+                name=f"agent {i} path",
+                hoverinfo="skip",
+                meta={"role": "path", "agent": i},
+                **group,
+            )
+        )
+        start = P[0, i]
+        traces.append(
+            scatter(
+                **axes([[_round(start[a])] for a in range(d)]),
+                mode="markers",
+                marker=dict(
+                    symbol=start_symbol,
+                    size=6 if is3d else 9,
+                    color="white" if not is3d else colors[i],
+                    line=dict(color=colors[i], width=2),
+                ),
+                name=f"agent {i} start",
+                hoverinfo="skip",  # the agent marker sits on it at t = 0: its hover card wins
+                meta={"role": "start", "agent": i},
+                **group,
+            )
+        )
+        goal = run.goals[i]
+        traces.append(
+            scatter(
+                **axes([[_round(goal[a])] for a in range(d)]),
+                mode="markers",
+                marker=dict(
+                    symbol=goal_symbol,
+                    size=6 if is3d else 14,
+                    color=colors[i],
+                    line=dict(color="black", width=1),
+                ),
+                name=f"agent {i} goal",
+                hoverinfo="skip",  # the agent marker sits on it at the end: its hover card wins
+                meta={"role": "goal", "agent": i},
+                **group,
+            )
+        )
+
+    # ---- closest approach (static marker + annotation)
+    annotations: list[dict[str, Any]] = []
+    if closest is not None:
+        i, j = closest.pair
+        pi, pj = P[closest.step, i], P[closest.step, j]
+        mid = 0.5 * (pi + pj)
+        pair_ratio = float(np.max(np.abs(pi - pj) / delta))  # < 1: a collision
+        text = (
+            f"closest approach: {closest.distance:.4g} m (inf-norm), t = {closest.time:.2f} s"
+        )
+        traces.append(
+            scatter(
+                **axes([[_round(pi[a]), _round(pj[a])] for a in range(d)]),
+                mode="lines",
+                line=dict(color=_CLOSEST_COLOR, width=2 if is3d else 1.5, dash="dash"),
+                name="closest pair",
+                legendgroup="closest",
+                showlegend=False,
+                hoverinfo="skip",
+                meta={"role": "closest-pair", "pair": [i, j]},
+            )
+        )
+        traces.append(
+            scatter(
+                **axes([[_round(mid[a])] for a in range(d)]),
+                mode="markers",
+                marker=dict(symbol="x", size=6 if is3d else 11, color=_CLOSEST_COLOR),
+                name="closest approach",
+                legendgroup="closest",
+                hovertemplate=(
+                    f"{text}<br>agents {i} and {j}, separation / δ = {pair_ratio:.3f}"
+                    f"<br>Euclidean {float(np.linalg.norm(pi - pj)):.4g} m<extra></extra>"
+                ),
+                meta={
+                    "role": "closest",
+                    "distance": closest.distance,
+                    "time": closest.time,
+                    "step": closest.step,
+                    "pair": [i, j],
+                    "ratio": closest.ratio,
+                },
+            )
+        )
+        note = dict(
+            text=text,
+            showarrow=True,
+            arrowhead=2,
+            arrowcolor=_CLOSEST_COLOR,
+            ax=40,
+            ay=-40,
+            font=dict(color=_CLOSEST_COLOR, size=12),
+            bgcolor="rgba(255, 255, 255, 0.85)",
+            bordercolor=_CLOSEST_COLOR,
+            borderwidth=1,
+        )
+        if is3d:
+            annotations.append(dict(x=float(mid[0]), y=float(mid[1]), z=float(mid[2]), **note))
+        else:
+            annotations.append(dict(x=float(mid[0]), y=float(mid[1]), xref="x", yref="y", **note))
+
+    # ---- dynamic per agent: trail, delta box, marker (these are what frames update)
+    hover = (
+        "<b>agent %{customdata[0]}</b> · t = %{customdata[8]:.2f} s<br>"
+        + ("position (%{x:.2f}, %{y:.2f}, %{z:.2f})<br>" if is3d else "position (%{x:.2f}, %{y:.2f})<br>")
+        + "speed |v| = %{customdata[1]:.3f} m/s<br>"
+        "to goal: %{customdata[2]:.3f} m<br>"
+    )
+    if m > 1:
+        hover += (
+            "nearest, inf-norm: %{customdata[3]:.3f} m (agent %{customdata[4]})<br>"
+            "nearest, Euclidean: %{customdata[5]:.3f} m (agent %{customdata[6]})<br>"
+            "separation / δ: %{customdata[7]:.2f}"
+        )
+    hover += "<extra></extra>"
+
+    def dynamic(k_pos: int, full: bool) -> list[dict[str, Any]]:
+        """The 3M dynamic traces (trail, box, marker per agent) at frame position ``k_pos``.
+
+        ``full`` gives complete traces (the figure's initial data); otherwise only what changes
+        from frame to frame (plotly.js merges a frame's data into the traces it names).
+        """
+        k = int(frames_k[k_pos])
+        trail_k = _trail_indices(frames_k, k_pos)
+        n_inf, id_inf, n_two, id_two, ratio = _neighbour_table(P[k], delta)
+        out: list[dict[str, Any]] = []
+        for i in range(m):
+            p = P[k, i]
+            colliding = bool(m > 1 and ratio[i] < 1 - 1e-9)
+            edge = _CLOSEST_COLOR if colliding else colors[i]
+            trail = scatter(**axes([_rlist(P[trail_k, i, a], 3) for a in range(d)]))
+            if full:
+                trail.update(
+                    mode="lines",
+                    line=dict(color=colors[i], width=4 if is3d else 2.5),
+                    name=f"agent {i} trail",
+                    legendgroup=f"agent {i}",
+                    showlegend=False,
+                    hoverinfo="skip",
+                    meta={"role": "trail", "agent": i},
+                )
+            out.append(trail)
+
+            box = scatter(**axes(_box_lines(p - delta, p + delta, 3)))
+            box["line"] = dict(color=edge, width=(3 if colliding else 2) if is3d else (2 if colliding else 1))
+            if not is3d:
+                box["fillcolor"] = _rgba(edge, 0.22 if colliding else 0.12)
+            if full:
+                box.update(
+                    mode="lines",
+                    name=f"agent {i} box",
+                    legendgroup=f"agent {i}",
+                    showlegend=False,
+                    hoverinfo="skip",
+                    meta={"role": "box", "agent": i},
+                )
+                if not is3d:
+                    box["fill"] = "toself"
+            out.append(box)
+
+            custom = [
+                i,
+                _round(np.linalg.norm(V[k, i])),
+                _round(np.linalg.norm(p - run.goals[i])),
+                _round(n_inf[i]),
+                int(id_inf[i]),
+                _round(n_two[i]),
+                int(id_two[i]),
+                _round(ratio[i]),
+                _round(t[k]),
+            ]
+            marker = scatter(
+                **axes([[_round(p[a])] for a in range(d)]),
+                customdata=[custom],
+                marker=dict(line=dict(color=_CLOSEST_COLOR if colliding else "white")),
+            )
+            if full:
+                marker.update(
+                    mode="markers+text",
+                    marker=dict(
+                        size=7 if is3d else 11,
+                        color=colors[i],
+                        line=dict(color=marker["marker"]["line"]["color"], width=1 if is3d else 2),
+                    ),
+                    text=[str(i)],
+                    textposition="top center",
+                    textfont=dict(size=11, color=colors[i]),
+                    hovertemplate=hover,
+                    name=f"agent {i}",
+                    legendgroup=f"agent {i}",
+                    showlegend=True,
+                    meta={"role": "agent", "agent": i},
+                )
+            out.append(marker)
+        return out
+
+    first_dynamic = len(traces)
+    traces.extend(dynamic(0, full=True))
+    dynamic_ids = list(range(first_dynamic, len(traces)))
+
+    frame_ms = int(np.clip(1000.0 * run.dt * max(1.0, (steps - 1) / max(1, len(frames_k) - 1)), 40, 150))
+    redraw = is3d  # 3D (WebGL) traces need a redraw per frame; 2D animates without one
+    frames = [
+        {"name": f"{int(k)}", "data": dynamic(pos, full=False), "traces": dynamic_ids}
+        for pos, k in enumerate(frames_k)
+    ]
+
+    play_args = {
+        "frame": {"duration": frame_ms, "redraw": redraw},
+        "fromcurrent": True,
+        "transition": {"duration": 0},
+        "mode": "immediate",
+    }
+    jump = {"frame": {"duration": 0, "redraw": redraw}, "mode": "immediate", "transition": {"duration": 0}}
+    updatemenus = [
+        dict(
+            type="buttons",
+            direction="left",
+            showactive=False,
+            x=0.0,
+            y=0.0,
+            xanchor="left",
+            yanchor="top",
+            pad=dict(t=45, r=10),
+            buttons=[
+                dict(label="▶ Play", method="animate", args=[None, play_args]),
+                dict(
+                    label="❚❚ Pause",
+                    method="animate",
+                    args=[[None], jump],
+                ),
+            ],
+        )
+    ]
+    many = len(frames_k) > 25
+    sliders = [
+        dict(
+            active=0,
+            x=0.16,
+            y=0.0,
+            len=0.84,
+            xanchor="left",
+            yanchor="top",
+            pad=dict(t=30, b=10),
+            currentvalue=dict(
+                prefix="t = ", suffix=" s", visible=True, xanchor="left", font=dict(size=14, color="#2a3f5f")
+            ),
+            # with many steps the per-step tick labels overlap: hide them, keep the current value
+            font=dict(color="rgba(0,0,0,0)" if many else "#444", size=10),
+            ticklen=2 if many else 5,
+            transition=dict(duration=0),
+            steps=[
+                dict(
+                    method="animate",
+                    label=f"{t[k]:.2f}",
+                    args=[
+                        [f"{int(k)}"],
+                        jump,
+                    ],
+                )
+                for k in frames_k
+            ],
+        )
+    ]
+
+    layout: dict[str, Any] = dict(
+        title=dict(text=_title(run, closest), x=0.5, xanchor="center", font=dict(size=16)),
+        updatemenus=updatemenus,
+        sliders=sliders,
+        hovermode="closest",
+        template=_template("plotly_white"),
+        legend=dict(itemsizing="constant", tracegroupgap=2),
+        margin=dict(l=60, r=30, t=80, b=130),
+        uirevision="swarmpc-view",
+        meta={
+            "swarmpc": "view",
+            "dim": d,
+            "num_agents": m,
+            "frames": len(frames_k),
+            "frame_steps": [int(k) for k in frames_k],
+        },
+    )
+    if is3d:
+        size = hi - lo
+        ratio = size / size.max()
+        layout["scene"] = dict(
+            xaxis=dict(range=[float(lo[0]), float(hi[0])], autorange=False, title=dict(text="x [m]")),
+            yaxis=dict(range=[float(lo[1]), float(hi[1])], autorange=False, title=dict(text="y [m]")),
+            zaxis=dict(range=[float(lo[2]), float(hi[2])], autorange=False, title=dict(text="z [m]")),
+            aspectmode="manual",
+            aspectratio=dict(x=float(ratio[0]), y=float(ratio[1]), z=float(ratio[2])),
+            camera=dict(eye=dict(x=1.25, y=-1.4, z=0.8)),
+            annotations=annotations,
+            uirevision="swarmpc-view",
+        )
+    else:
+        layout["xaxis"] = dict(
+            range=[float(lo[0]), float(hi[0])],
+            autorange=False,
+            title=dict(text="x [m]"),
+            constrain="domain",
+            zeroline=False,
+        )
+        layout["yaxis"] = dict(
+            range=[float(lo[1]), float(hi[1])],
+            autorange=False,
+            title=dict(text="y [m]"),
+            scaleanchor="x",
+            scaleratio=1,
+            constrain="domain",
+            zeroline=False,
+        )
+        layout["annotations"] = annotations
+
+    return {"data": traces, "layout": layout, "frames": frames}
+
+
+# Pausing (or scrubbing the slider during play) interrupts the running Plotly.animate call; plotly.js
+# then rejects that call's promise with no reason, which its own buttons never catch, so the console
+# shows "Uncaught (in promise)". Mark exactly those reason-less rejections handled; every real
+# error (which has a reason) is still reported.
+_QUIET_INTERRUPTED_ANIMATION = (
+    "window.addEventListener('unhandledrejection', function (ev) {"
+    " if (ev.reason === undefined) { ev.preventDefault(); } });"
+)
+
+
+def write_view(run_dir: str | Path, out: str | Path | None = None, *, open_browser: bool = False) -> Path:
+    """Write the run's viewer as one self-contained HTML file; return its path.
+
+    ``out`` defaults to ``RUN_DIR/view.html``. plotly.js is embedded (no CDN, works offline).
+    With ``open_browser`` the page is also opened in the default web browser.
+    """
+    folder = Path(run_dir)
+    target = Path(out) if out is not None else folder / "view.html"
+    import plotly.io as pio
+
+    page = pio.to_html(
+        figure_dict(folder),
+        validate=False,  # build_figure validates the same dictionary (in the tests)
+        include_plotlyjs=True,
+        include_mathjax=False,
+        full_html=True,
+        auto_play=False,
+        div_id="swarmpc-view",
+        default_width="100%",
+        default_height="100vh",
+        config={"displaylogo": False, "responsive": True, "scrollZoom": True},
+        post_script=_QUIET_INTERRUPTED_ANIMATION,
+    )
+    title = f"swarmpc view · {html.escape(load_run_name(folder))}"
+    # one full-window figure: no body margin (plotly's page sets html, body {height: 100%})
+    style = "<style>html, body {margin: 0; padding: 0;}</style>"
+    page = page.replace("<head>", f"<head><title>{title}</title>{style}", 1)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    # write beside the target, then rename: a reader never sees half a page (plain open() so the
+    # file gets the usual umask permissions, unlike tempfile's 0600)
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(page, encoding="utf-8")
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    if open_browser:
+        webbrowser.open(target.resolve().as_uri())
+    return target
+
+
+def load_run_name(run_dir: str | Path) -> str:
+    """The scenario name of a run folder, cheaply (for the page title)."""
+    folder = Path(run_dir)
+    summary = folder / "summary.json"
+    if summary.is_file():
+        try:
+            data = json.loads(summary.read_text())
+            if isinstance(data, dict) and data.get("scenario"):
+                return str(data["scenario"])
+        except ValueError:
+            pass
+    return folder.name

@@ -1,0 +1,106 @@
+"""Consensus ADMM: one step against the centralised optimum, the executor contract, closed loops."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import dynamics_error, load_folder, recount_collisions, run_cli
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.model.geometry import point_box_distance
+from swarmpc.scenarios import builtin_scenario
+from swarmpc.simulation.guessing import GuessProvider
+from swarmpc.simulation.loop import simulate
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver
+from swarmpc.solvers.centralized import CentralizedSolver
+from swarmpc.solvers.executors import SerialExecutor, ThreadExecutor
+
+
+def plan_cost(plan, goals, s: OCPSettings) -> float:
+    total = 0.0
+    for states, inputs, goal in zip(plan.states, plan.inputs, goals):
+        err = states - goal
+        total += np.einsum("ki,ij,kj->", err[:-1], s.Q, err[:-1]) + np.einsum("ki,ij,kj->", inputs, s.R, inputs)
+        total += err[-1] @ s.Qf @ err[-1]
+    return float(total)
+
+
+def approach_state(name: str, steps: int = 20):
+    """Agents on their way to the centre, where the collision constraints become active."""
+    scn = builtin_scenario(name).with_updates(**{"solver.method": "centralized", "stop.max_steps": steps})
+    return scn, simulate(scn).states[-1]
+
+
+@pytest.mark.parametrize("name", ["paper-2d", "paper-3d"])
+def test_one_step_matches_centralised(name):
+    scn, states = approach_state(name)
+    s = OCPSettings.from_scenario(scn)
+    goals = scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+    central = CentralizedSolver(s, scn.num_agents, scn.delta_vector).plan(states, goals, guess)
+    admm = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(max_iter=200)).plan(states, goals, guess)
+    assert central.failures == 0 and admm.failures == 0 and not admm.repaired
+    assert admm.primal_residuals[-1] <= 1e-3 and admm.dual_residuals[-1] <= 1e-3
+    # every constraint, recomputed from the agents' own plans
+    d, first = s.dim, s.first_constrained_step
+    for i in range(scn.num_agents):
+        rollout = admm.states[i, 0]
+        for k in range(s.horizon):
+            rollout = np.concatenate([rollout[:d] + s.dt * rollout[d:], rollout[d:] + s.dt * admm.inputs[i, k]])
+            assert np.allclose(rollout, admm.states[i, k + 1], atol=1e-8)
+        for j in range(i + 1, scn.num_agents):
+            for k in range(first, s.horizon + 1):
+                gap = point_box_distance(admm.states[i, k, :d] - admm.states[j, k, :d], scn.delta_vector)
+                assert gap >= s.d_min - 5e-3
+    central_cost = plan_cost(central, goals, s)
+    assert plan_cost(admm, goals, s) == pytest.approx(central_cost, rel=0.01)
+    assert admm.max_slack == 0.0
+
+
+def test_executors_give_identical_plans():
+    scn, states = approach_state("paper-2d", steps=15)
+    s = OCPSettings.from_scenario(scn)
+    goals = scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+    plans = []
+    for executor in (SerialExecutor(), ThreadExecutor(workers=2)):
+        solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(), executor)
+        first = solver.plan(states, goals, guess)
+        second = solver.plan(first.states[:, 1], goals, guess)  # warm-started step
+        plans.append((first, second))
+        solver.close()
+    for a, b in zip(plans[0], plans[1]):
+        assert a.admm_iterations == b.admm_iterations
+        assert np.array_equal(a.states, b.states) and np.array_equal(a.inputs, b.inputs)
+        assert a.primal_residuals == b.primal_residuals
+
+
+@pytest.fixture(scope="module", params=[("paper-2d", "hard"), ("paper-3d", "hard"), ("paper-2d", "soft"),
+                                        ("paper-3d", "soft")], ids=lambda p: "-".join(p))
+def admm_run(request, tmp_path_factory):
+    name, collision = request.param
+    out = tmp_path_factory.mktemp("admm") / f"{name}-{collision}"
+    done = run_cli("run", name, "--collision", collision, "--out", str(out), "--quiet")
+    assert done.returncode == 0, done.stderr
+    return collision, out
+
+
+def test_admm_closed_loop(admm_run):
+    collision, out = admm_run
+    summary, arrays = load_folder(out)
+    states, goals = arrays["states"], arrays["goals"]
+    d = states.shape[2] // 2
+    assert summary["method"] == "admm"
+    assert np.all(np.linalg.norm(states[-1, :, :d] - goals[:, :d], axis=1) <= 0.05 + 1e-9)
+    assert dynamics_error(states, arrays["inputs"], float(arrays["dt"])) < 1e-9
+    collisions, _ = recount_collisions(states, arrays["delta"])
+    assert summary["collisions"] == collisions
+    if collision == "hard":
+        assert collisions == 0
+    else:
+        assert summary["max_slack"] >= 0.0 and "max_slack" in summary
+    iterations = summary["admm_iterations"]
+    assert iterations["median"] >= 1 and iterations["max"] <= 100
+    with np.load(out / "admm.npz") as admm:
+        assert admm["primal"].shape[0] == summary["steps"]
+        assert np.all(admm["iterations"] >= 1)
