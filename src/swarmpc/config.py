@@ -163,7 +163,7 @@ class SolverConfig(_Frozen):
     """How each MPC step is solved."""
 
     method: Literal["admm", "centralized"] = "admm"
-    rho: float = Field(default=1.0, gt=0, description="ADMM penalty parameter")
+    rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
     max_iter: int = Field(default=100, ge=1, description="ADMM iteration cap per MPC step")
     tol: float = Field(default=1e-3, gt=0, description="ADMM primal/dual residual tolerance")
     adaptive_rho: bool = Field(default=False, description="residual balancing of rho")

@@ -34,7 +34,7 @@ from swarmpc.solvers.guesses import agent_guess_blocks, inputs_from_states, pair
 class ADMMConfig:
     """ADMM parameters (see the scenario's ``solver`` block)."""
 
-    rho: float = 1.0
+    rho: float = 10.0
     max_iter: int = 100
     tol: float = 1e-3
     adaptive_rho: bool = False
@@ -42,6 +42,7 @@ class ADMMConfig:
     owner_weight: float = 5.0
     repair: bool = True
     coupling_margin: float | None = 0.5
+    stall_window: int | None = 20
     rho_bounds: tuple[float, float] = (1e-2, 1e3)
 
 
@@ -130,9 +131,9 @@ class LocalAgent:
     def _multipliers_step(self, request: LocalRequest) -> None:
         last = self._last_sent
         if request.new_step or last is None:
-            shift = lambda y: np.concatenate([y[:, 1:], y[:, -1:]], axis=1)  # noqa: E731
-            self._gamma_own = shift(self._gamma_own) if self._gamma_own is not None else None
-            self._gamma = {j: shift(y) for j, y in self._gamma.items() if j in request.neighbours}
+            if self._gamma_own is not None:
+                self._gamma_own = shift_blocks({"own": self._gamma_own})["own"]
+            self._gamma = shift_blocks({j: y for j, y in self._gamma.items() if j in request.neighbours})
             return
         rho = request.rho_previous
         self._gamma_own = (self._gamma_own if self._gamma_own is not None else 0.0) + (
@@ -209,7 +210,15 @@ class LocalAgent:
             if self._last is not None and request.new_step and same_shape:
                 shifted = shift_blocks(self._last.x)
                 point.update({k: v for k, v in shifted.items() if k.startswith(("L", "A"))})
-        solution = self.nlp.solve(params, point, fixed=self._pinned_copies(request))
+        pinned = self._pinned_copies(request)
+        if pinned is not None and s.collision == "soft":
+            # repair: first try to keep clear of the fixed plans without slack
+            strict = {**pinned, **{f"A{slot}": 0.0 for slot in range(len(request.neighbours))}}
+            solution = self.nlp.solve(params, point, fixed=strict)
+            if not solution.success:
+                solution = self.nlp.solve(params, point, fixed=pinned)
+        else:
+            solution = self.nlp.solve(params, point, fixed=pinned)
         first = s.first_constrained_step
         n = len(request.neighbours)
         fallback = False
@@ -351,6 +360,8 @@ class ADMMSolver:
                     coupled[i].add(j)
                     coupled[j].add(i)
                 neighbours = [tuple(sorted(n)) for n in coupled]
+            if self._stalled(primal):
+                break
             rho_previous = rho
             if cfg.adaptive_rho:
                 if r_norm > 10 * s_norm:
@@ -381,6 +392,14 @@ class ADMMSolver:
             dual_residuals=dual,
             rho_history=rhos,
         )
+
+    def _stalled(self, primal: list[float]) -> bool:
+        """No 10% progress of the primal residual over the last ``stall_window`` iterations: more
+        iterations will not reach consensus, so stop and let the repair pass finish the step."""
+        window = self.config.stall_window
+        if window is None or len(primal) <= window:
+            return False
+        return min(primal[-window:]) > 0.9 * min(primal[:-window])
 
     def _request(
         self, i: int, states: np.ndarray, goals: np.ndarray, guess: np.ndarray, neighbours: tuple[int, ...],

@@ -1,0 +1,44 @@
+"""Built-in scenarios: valid, listed, and identical to their YAML copies in examples/."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from swarmpc.config import load_scenario
+from swarmpc.model.geometry import inf_separation_ratio
+from swarmpc.scenarios import BUILTINS, builtin_scenario
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+@pytest.mark.parametrize("name", list(BUILTINS))
+def test_example_yaml_matches_builtin(name):
+    assert load_scenario(EXAMPLES / f"{name}.yaml") == builtin_scenario(name)
+
+
+@pytest.mark.parametrize("agents,dim", [(2, 2), (8, 2), (16, 2), (8, 3), (32, 3)])
+def test_circle_is_antipodal_and_separated(agents, dim):
+    scn = builtin_scenario("circle", agents=agents, dim=dim)
+    starts, goals = scn.start_states()[:, :dim], scn.goal_states()[:, :dim]
+    midpoints = (starts + goals) / 2
+    assert np.allclose(midpoints, midpoints[0], atol=1e-5)  # every swap passes through one centre
+    assert inf_separation_ratio(starts, scn.delta_vector).min() >= 1.0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_random_is_seeded(seed):
+    a = builtin_scenario("random", agents=16, dim=3, seed=seed)
+    b = builtin_scenario("random", agents=16, dim=3, seed=seed)
+    assert a == b
+    starts = a.start_states()[:, :3]
+    gaps = np.linalg.norm(starts[:, None] - starts[None], axis=2) + np.eye(16) * 9
+    assert gaps.min() >= 0.5
+
+
+def test_scenarios_command_lists_every_builtin():
+    from conftest import run_cli
+
+    done = run_cli("scenarios")
+    assert done.returncode == 0
+    assert all(name in done.stdout for name in BUILTINS)
