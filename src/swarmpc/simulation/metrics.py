@@ -88,9 +88,13 @@ def summarize(
         "step_time_ms": stats(step_times, 1000.0),
         "admm_iterations": None
         if admm_iterations is None
-        else {"median": float(np.median(admm_iterations)), "max": int(np.max(admm_iterations))}
+        else {
+            "median": float(np.median(admm_iterations)),
+            "mean": float(np.mean(admm_iterations)),
+            "max": int(np.max(admm_iterations)),
+        }
         if len(admm_iterations)
-        else {"median": None, "max": None},
+        else {"median": None, "mean": None, "max": None},
         "solver_failures": int(solver_failures),
         "deadlocks": int(deadlock_events),
         "interrupted": bool(interrupted),
