@@ -7,8 +7,11 @@ request order. The ADMM algorithm never changes with the executor; only where th
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from multiprocessing.connection import Connection
 from typing import Any, Protocol
 
 
@@ -62,10 +65,165 @@ class ThreadExecutor(SerialExecutor):
             return list(pool.map(lambda r: self._agents[r.agent].solve(r), requests))
 
 
+def _serve_agents(connection: Connection, factory: AgentFactory, agent_ids: Sequence[int]) -> None:
+    """Worker-process main loop: build this worker's agents once, then answer batches until told
+    to stop (``None``). Exceptions travel back to the coordinator instead of killing the worker."""
+    agents = {i: factory(i) for i in agent_ids}
+    connection.send(("ready", None))
+    while True:
+        batch = connection.recv()
+        if batch is None:
+            break
+        try:
+            connection.send(("ok", [agents[r.agent].solve(r) for r in batch]))
+        except Exception as err:  # noqa: BLE001 - reported to the coordinator, which re-raises
+            connection.send(("error", f"{type(err).__name__}: {err}"))
+    connection.close()
+
+
+def available_cores() -> int:
+    """Cores this process may use (the affinity mask, not the machine's total)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+class ProcessExecutor:
+    """Agents spread over long-lived worker processes (agent ``i`` on worker ``i mod W``).
+
+    Each worker builds its agents' CasADi solvers once at :meth:`start` and keeps them, so a
+    batch costs only the pickling of requests and results; the workers' solves overlap.
+    """
+
+    def __init__(self, workers: int | None = None) -> None:
+        self._workers = workers or available_cores()
+        self._connections: list[Connection] = []
+        self._processes: list[multiprocessing.process.BaseProcess] = []
+        self._home: dict[int, int] = {}
+
+    def start(self, factory: AgentFactory, agent_ids: Sequence[int]) -> None:
+        self.close()
+        ids = list(agent_ids)
+        count = max(1, min(self._workers, len(ids)))
+        context = multiprocessing.get_context("spawn")
+        for worker in range(count):
+            mine = ids[worker::count]
+            parent, child = context.Pipe()
+            process = context.Process(target=_serve_agents, args=(child, factory, mine), daemon=True)
+            process.start()
+            child.close()
+            self._connections.append(parent)
+            self._processes.append(process)
+            self._home.update({i: worker for i in mine})
+        for connection in self._connections:
+            self._receive(connection)
+
+    @staticmethod
+    def _receive(connection: Connection) -> Any:
+        kind, payload = connection.recv()
+        if kind == "error":
+            raise RuntimeError(f"local solve failed in a worker process: {payload}")
+        return payload
+
+    def solve(self, requests: Sequence[Any]) -> list[Any]:
+        batches: dict[int, list[Any]] = {}
+        for request in requests:
+            batches.setdefault(self._home[request.agent], []).append(request)
+        for worker, batch in batches.items():
+            self._connections[worker].send(batch)
+        answers: dict[int, Any] = {}
+        for worker, batch in batches.items():
+            for request, result in zip(batch, self._receive(self._connections[worker])):
+                answers[request.agent] = result
+        return [answers[r.agent] for r in requests]
+
+    def close(self) -> None:
+        for connection in self._connections:
+            try:
+                connection.send(None)
+            except (BrokenPipeError, OSError):
+                pass
+        for process in self._processes:
+            process.join(timeout=5)
+            if process.is_alive():
+                process.terminate()
+        self._connections, self._processes, self._home = [], [], {}
+
+
+class _RayAgentHost:
+    """A Ray actor hosting one or more agents (the remote counterpart of a worker process)."""
+
+    def __init__(self, factory: AgentFactory, agent_ids: Sequence[int]) -> None:
+        self._agents = {i: factory(i) for i in agent_ids}
+
+    def solve(self, batch: Sequence[Any]) -> list[Any]:
+        return [self._agents[r.agent].solve(r) for r in batch]
+
+
+class RayExecutor:
+    """Agents as Ray actors: a local Ray started on demand, or an existing cluster by address.
+
+    ``actors`` bounds how many actors host the agents (agent ``i`` on actor ``i mod A``);
+    by default one actor per available CPU of the cluster.
+    """
+
+    def __init__(self, address: str | None = None, actors: int | None = None) -> None:
+        try:
+            import ray
+        except ImportError as err:
+            raise ValueError("executor ray needs Ray: pip install 'swarmpc[ray]'") from err
+        self._ray = ray
+        self._address = address
+        self._actors_wanted = actors
+        self._actors: list[Any] = []
+        self._home: dict[int, int] = {}
+        self._started_ray = False
+
+    def start(self, factory: AgentFactory, agent_ids: Sequence[int]) -> None:
+        ray = self._ray
+        if not ray.is_initialized():
+            ray.init(address=self._address, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False)
+            self._started_ray = True
+        ids = list(agent_ids)
+        cpus = int(ray.cluster_resources().get("CPU", 1))
+        count = max(1, min(self._actors_wanted or cpus, len(ids)))
+        host = ray.remote(num_cpus=0)(_RayAgentHost)
+        self._actors = [host.remote(factory, ids[a::count]) for a in range(count)]
+        self._home = {i: a for a in range(count) for i in ids[a::count]}
+
+    def solve(self, requests: Sequence[Any]) -> list[Any]:
+        batches: dict[int, list[Any]] = {}
+        for request in requests:
+            batches.setdefault(self._home[request.agent], []).append(request)
+        futures = {a: self._actors[a].solve.remote(batch) for a, batch in batches.items()}
+        answers: dict[int, Any] = {}
+        for a, batch in batches.items():
+            for request, result in zip(batch, self._ray.get(futures[a])):
+                answers[request.agent] = result
+        return [answers[r.agent] for r in requests]
+
+    def close(self) -> None:
+        for actor in self._actors:
+            self._ray.kill(actor)
+        self._actors, self._home = [], {}
+        if self._started_ray:
+            self._ray.shutdown()
+            self._started_ray = False
+
+
+EXECUTORS = ("serial", "thread", "process", "ray")
+
+
 def make_executor(name: str, **options: Any) -> Executor:
-    """An executor by name: ``serial`` or ``thread``."""
+    """An executor by name: one of :data:`EXECUTORS`."""
     if name == "serial":
         return SerialExecutor()
     if name == "thread":
         return ThreadExecutor(**options)
-    raise ValueError(f"unknown executor {name!r} (choose serial or thread)")
+    if name == "process":
+        return ProcessExecutor(**options)
+    if name == "ray":
+        return RayExecutor(**options)
+    raise ValueError(f"unknown executor {name!r} (choose one of {', '.join(EXECUTORS)})")

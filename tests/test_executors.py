@@ -1,0 +1,96 @@
+"""The executor contract: every executor gives the same plans as the serial one, bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.scenarios import builtin_scenario
+from swarmpc.simulation.guessing import GuessProvider
+from swarmpc.simulation.loop import simulate
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver
+from swarmpc.solvers.executors import (
+    ProcessExecutor,
+    RayExecutor,
+    SerialExecutor,
+    ThreadExecutor,
+    make_executor,
+)
+
+
+@pytest.fixture(scope="module")
+def meeting_point():
+    """paper-2d agents close to the centre, where the coupling constraints are active."""
+    scn = builtin_scenario("paper-2d").with_updates(**{"solver.method": "centralized", "stop.max_steps": 30})
+    states = simulate(scn).states[-1]
+    settings = OCPSettings.from_scenario(scn)
+    goals = scn.goal_states()
+    guess = GuessProvider(scn, settings, "straight").guesses(states, goals, None)
+    return scn, settings, states, goals, guess
+
+
+def two_steps(executor, meeting_point):
+    scn, settings, states, goals, guess = meeting_point
+    solver = ADMMSolver(settings, scn.num_agents, scn.delta_vector, ADMMConfig(), executor)
+    try:
+        first = solver.plan(states, goals, guess)
+        second = solver.plan(first.states[:, 1], goals, guess)  # warm-started step
+    finally:
+        solver.close()
+    return first, second
+
+
+@pytest.fixture(scope="module")
+def serial_plans(meeting_point):
+    return two_steps(SerialExecutor(), meeting_point)
+
+
+def assert_same_plans(reference, plans) -> None:
+    for a, b in zip(reference, plans):
+        assert a.admm_iterations == b.admm_iterations
+        assert np.array_equal(a.states, b.states) and np.array_equal(a.inputs, b.inputs)
+        assert a.primal_residuals == b.primal_residuals and a.dual_residuals == b.dual_residuals
+
+
+def test_meeting_point_needs_several_iterations(serial_plans):
+    assert serial_plans[0].admm_iterations > 1  # otherwise the comparison below proves little
+
+
+@pytest.mark.parametrize("make", [lambda: ThreadExecutor(workers=2), lambda: ProcessExecutor(workers=2)],
+                         ids=["thread", "process"])
+def test_executor_matches_serial(make, serial_plans, meeting_point):
+    assert_same_plans(serial_plans, two_steps(make(), meeting_point))
+
+
+def test_ray_executor_matches_serial(serial_plans, meeting_point):
+    pytest.importorskip("ray", reason="Ray is not installed (pip install 'swarmpc[ray]')")
+    assert_same_plans(serial_plans, two_steps(RayExecutor(actors=2), meeting_point))
+
+
+def test_process_executor_reports_worker_errors():
+    executor = ProcessExecutor(workers=1)
+    executor.start(FailingAgent, [0])
+    try:
+        with pytest.raises(RuntimeError, match="worker process: ValueError: agent 0 refuses"):
+            executor.solve([Request(agent=0)])
+    finally:
+        executor.close()
+
+
+def test_unknown_executor_is_named():
+    with pytest.raises(ValueError, match="unknown executor 'gpu'"):
+        make_executor("gpu")
+
+
+class Request:
+    def __init__(self, agent: int) -> None:
+        self.agent = agent
+
+
+class FailingAgent:
+    def __init__(self, agent: int) -> None:
+        self.agent = agent
+
+    def solve(self, request: Request) -> None:
+        raise ValueError(f"agent {request.agent} refuses")
