@@ -145,8 +145,9 @@ def result_paragraph(summary: dict[str, Any], folder: Path) -> str:
     times = summary["step_time_ms"]
     iterations = summary.get("admm_iterations")
     admm = (
-        f" ADMM took {iterations['median']:.0f} iterations per step (median, max {iterations['max']})."
-        if iterations and iterations.get("median") is not None
+        f" ADMM took {iterations['mean']:.1f} iterations per step on average"
+        f" (median {iterations['median']:.0f}, max {iterations['max']})."
+        if iterations and iterations.get("mean") is not None
         else ""
     )
     sep = summary.get("min_separation_ratio")
@@ -225,6 +226,29 @@ def view(
     typer.echo(str(path))
 
 
+@app.command()
+def reproduce(
+    out: Annotated[Path, typer.Option(help="output folder")] = Path("results/reproduce"),
+    quick: Annotated[bool, typer.Option("--quick", help="small plan (fewer deltas, 25 steps): a smoke test")] = False,
+    jobs: Annotated[int | None, typer.Option(min=1, help="runs in parallel processes [number of cores]")] = None,
+    reuse: Annotated[bool, typer.Option("--reuse", help="keep run folders whose scenario already matches")] = False,
+    animations: Annotated[bool, typer.Option(help="also write GIF animations")] = True,
+) -> None:
+    """Run the paper's experiment set; write run folders, figures and OUT/report.md."""
+    from swarmpc.experiments.reproduce import reproduce as run_set
+
+    try:
+        report = run_set(out, quick=quick, jobs=jobs, reuse=reuse, animations=animations,
+                         log=lambda line: typer.echo(line, err=True))
+    except KeyboardInterrupt:
+        typer.echo(f"swarmpc: interrupted; finished run folders are kept in {out}/runs "
+                   "(--reuse skips them next time)", err=True)
+        raise typer.Exit(code=130) from None
+    except (ValueError, OSError) as err:
+        fail(str(err).splitlines()[0])
+    typer.echo(str(report))
+
+
 def main() -> None:
     """Console entry point: usage errors also exit with status 2 and one line."""
     try:
@@ -237,7 +261,8 @@ def main() -> None:
         format_message = getattr(err, "format_message", None)
         if format_message is None:
             raise
-        typer.echo(f"swarmpc: error: {format_message().splitlines()[0]}", err=True)
+        line = format_message().splitlines()[0].replace("Value error, ", "")
+        typer.echo(f"swarmpc: error: {line}", err=True)
         code = 2
     sys.exit(code if isinstance(code, int) else 0)
 

@@ -169,6 +169,9 @@ class SolverConfig(_Frozen):
     adaptive_rho: bool = Field(default=False, description="residual balancing of rho")
     initial_guess: Literal["auto", "rrt", "straight", "shifted"] = "auto"
     rrt_time_budget: float = Field(default=0.05, gt=0, description="seconds per RRT plan")
+    seed_duals: bool = Field(
+        default=True, description="seed the OBCA certificates from the guess's geometry (else 0)"
+    )
 
 
 class StopConfig(_Frozen):
@@ -177,6 +180,40 @@ class StopConfig(_Frozen):
     goal_tolerance: float = Field(default=0.05, gt=0, description="position tolerance [m]")
     speed_tolerance: float = Field(default=0.1, gt=0, description="speed tolerance at the goal")
     max_steps: int = Field(default=400, ge=1)
+
+
+class Disturbance(_Frozen):
+    """Uncertainty injected into the closed loop (all zero: off, the nominal simulation).
+
+    Process noise is added to the true state after every step, measurement noise to the state the
+    planner sees; both are Gaussian, independent per component, drawn from a generator seeded by
+    the scenario's ``seed``. ``tightening`` is a safety margin added to delta in the planner only
+    (collisions are still counted against the true delta).
+    """
+
+    process_position_std: float = Field(
+        default=0.0, ge=0, description="process noise std per position component, added each step [m]"
+    )
+    process_velocity_std: float = Field(
+        default=0.0, ge=0, description="process noise std per velocity component, added each step [m/s]"
+    )
+    measurement_position_std: float = Field(
+        default=0.0, ge=0, description="measurement noise std per position component the planner sees [m]"
+    )
+    measurement_velocity_std: float = Field(
+        default=0.0, ge=0, description="measurement noise std per velocity component the planner sees [m/s]"
+    )
+    tightening: float = Field(
+        default=0.0, ge=0, description="safety margin added to delta in the planner only [m]"
+    )
+
+    @property
+    def has_process_noise(self) -> bool:
+        return self.process_position_std > 0 or self.process_velocity_std > 0
+
+    @property
+    def has_measurement_noise(self) -> bool:
+        return self.measurement_position_std > 0 or self.measurement_velocity_std > 0
 
 
 class Scenario(_Frozen):
@@ -199,6 +236,10 @@ class Scenario(_Frozen):
     agents: list[Agent]
     solver: SolverConfig = SolverConfig()
     stop: StopConfig = StopConfig()
+    disturbance: Disturbance = Field(
+        default=Disturbance(),
+        description="process/measurement noise (seeded by `seed`) and planner tightening; default off",
+    )
 
     @field_validator("dim")
     @classmethod

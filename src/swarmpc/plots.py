@@ -859,7 +859,7 @@ def animate(
     if fmt == "mp4" and not animation.writers.is_available("ffmpeg"):
         raise AnimationWriterError(
             "mp4 animations need ffmpeg, which was not found: install ffmpeg "
-            "(e.g. `apt-get install ffmpeg` or `conda install ffmpeg`) or use fmt='gif'"
+            "(e.g. `apt-get install ffmpeg` or `conda install ffmpeg`) or write a GIF instead (--format gif, fmt='gif')"
         )
     frames = frame_indices(run.num_steps + 1, max_frames)
     times = run.t[frames]

@@ -225,7 +225,8 @@ def build_centralized(s: OCPSettings, num_agents: int, options: dict | None = No
 
 
 def build_local(
-    s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict | None = None
+    s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict | None = None,
+    plugin: str = "ipopt",
 ) -> CompiledNLP:
     """Agent i's ADMM subproblem with ``num_copies`` local copies of other agents.
 
@@ -263,7 +264,10 @@ def build_local(
         lam = builder.variable(f"L{c}", 2 * d, K, 0.0, np.inf)
         margin, norm_sq = certificate_terms(own - copy, lam, half)
         add_certificate(builder, str(c), margin, norm_sq, s, relax=(1 - active) * 1e3)
-    return builder.build(f"local_{num_copies}_{int(dynamic_copies)}", "ipopt", {**IPOPT_OPTIONS, **(options or {})})
+    label = f"local_{num_copies}_{int(dynamic_copies)}"
+    if plugin != "ipopt":
+        return builder.build(label, plugin, options or {})
+    return builder.build(label, "ipopt", {**IPOPT_OPTIONS, **(options or {})})
 
 
 def consensus_penalty(v: ca.SX, z: ca.SX, y: ca.SX, rho: ca.SX) -> ca.SX:

@@ -6,7 +6,7 @@ import numpy as np
 
 from swarmpc.config import Scenario
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.solvers.base import PlanStep
+from swarmpc.solvers.base import SHIFT_TOLERANCE, PlanStep
 from swarmpc.solvers.guesses import nominal_speed
 from swarmpc.solvers.rrt import RRTGuess, straight_line_guess
 
@@ -22,7 +22,9 @@ class GuessProvider:
 
     With ``rrt`` and ``auto`` the RRT path also steers: while static obstacles block the straight
     line to an agent's goal, the MPC tracks a waypoint ``lookahead`` metres along the path
-    (:meth:`goals`), so a short horizon is not trapped in front of a wall.
+    (:meth:`goals`), so a short horizon is not trapped in front of a wall. The RRT state guess is
+    then taken along the path to the agent's route goal (the goal :meth:`goals` was given), not to
+    the moving waypoint, so the stored path is reused from step to step instead of re-planned.
     """
 
     def __init__(self, scn: Scenario, settings: OCPSettings, strategy: str | None = None) -> None:
@@ -39,6 +41,7 @@ class GuessProvider:
                 time_budget=scn.solver.rrt_time_budget,
             )
         self.lookahead = 1.5 * self.speed * settings.horizon * settings.dt
+        self._route: np.ndarray | None = None  # the goals given to the last goals() call
 
     @property
     def rrt_stats(self) -> dict[str, int] | None:
@@ -47,6 +50,8 @@ class GuessProvider:
     def _fresh(self, agent: int, state: np.ndarray, goal: np.ndarray) -> np.ndarray:
         s = self.settings
         if self._rrt is not None:
+            if self._route is not None and agent < len(self._route):
+                goal = self._route[agent]  # plan (and reuse) towards the route goal, not the waypoint
             guess = self._rrt.guess(agent, state, goal[: s.dim], s.dt, s.horizon, self.speed)
             if guess is not None:
                 return guess
@@ -57,6 +62,7 @@ class GuessProvider:
         if self._rrt is None:
             return goals
         d = self.settings.dim
+        self._route = goals.copy()
         out = goals.copy()
         for i, (state, goal) in enumerate(zip(states, goals)):
             if self._rrt.line_of_sight(state[:d], goal[:d]):
@@ -70,7 +76,7 @@ class GuessProvider:
         """(M, N+1, 2d) guesses for measured ``states`` (M, 2d)."""
         out = []
         for i, (state, goal) in enumerate(zip(states, goals)):
-            shiftable = previous is not None and np.allclose(previous.states[i, 1], state, atol=1e-6)
+            shiftable = previous is not None and np.allclose(previous.states[i, 1], state, atol=SHIFT_TOLERANCE)
             if self.strategy in ("shifted", "auto") and shiftable and not previous.fallback[i]:  # type: ignore[union-attr]
                 plan = previous.states[i]  # type: ignore[union-attr]
                 out.append(np.vstack([plan[1:], plan[-1:]]))

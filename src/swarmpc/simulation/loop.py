@@ -13,6 +13,7 @@ from swarmpc.config import Scenario
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.dynamics import DoubleIntegrator
 from swarmpc.simulation.deadlock import DeadlockResolver
+from swarmpc.simulation.disturbance import DisturbanceModel, planner_delta
 from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.simulation.results import RunResult, StepRecord
 from swarmpc.solvers.admm import ADMMConfig, ADMMSolver
@@ -28,14 +29,18 @@ class MPCSolver(Protocol):
 
 
 def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None = None) -> MPCSolver:
-    """The scenario's solver (``solver.method``), built once for the run."""
+    """The scenario's solver (``solver.method``), built once for the run.
+
+    The solver keeps agents apart by the planner's delta (the true one plus any tightening).
+    """
+    delta = planner_delta(scn)
     if scn.solver.method == "centralized":
-        return CentralizedSolver(settings, scn.num_agents, scn.delta_vector)
+        return CentralizedSolver(settings, scn.num_agents, delta, scn.solver.seed_duals)
     config = ADMMConfig(
         rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
-        adaptive_rho=scn.solver.adaptive_rho,
+        adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
     )
-    return ADMMSolver(settings, scn.num_agents, scn.delta_vector, config, executor)
+    return ADMMSolver(settings, scn.num_agents, delta, config, executor)
 
 
 def goal_reached(states: np.ndarray, goals: np.ndarray, scn: Scenario) -> np.ndarray:
@@ -60,13 +65,20 @@ def simulate(
     stop_flag: StopFlag | None = None,
     executor: Executor | None = None,
 ) -> RunResult:
-    """Run the scenario in closed loop until every agent is at its goal or ``max_steps``."""
+    """Run the scenario in closed loop until every agent is at its goal or ``max_steps``.
+
+    With a ``disturbance`` block the planner sees the measured state (true + measurement noise)
+    and the true state receives process noise after each step; the stop test and every metric use
+    the true state.
+    """
     started = time.perf_counter()
     settings = OCPSettings.from_scenario(scn)
     solver = solver or make_solver(scn, settings, executor)
     model = DoubleIntegrator(scn.dim, scn.dt, scn.discretization)
     guesser = GuessProvider(scn, settings)
-    deadlocks = DeadlockResolver(scn.num_agents, scn.dim)
+    deadlocks = DeadlockResolver(scn.num_agents, scn.dim, seed=scn.seed)
+    noise = DisturbanceModel.from_scenario(scn)
+    disturbances: list[np.ndarray] = []
     goals = scn.goal_states()
     states = scn.start_states()
     trajectory = [states]
@@ -80,11 +92,14 @@ def simulate(
         if stop_flag is not None and stop_flag.requested:
             interrupted = True
             break
-        step_goals = guesser.goals(states, deadlocks.goals(step, states, goals))
-        guess = guesser.guesses(states, step_goals, previous)
-        plan = solver.plan(states, step_goals, guess)
+        measured = states + noise.measurement()
+        step_goals = guesser.goals(measured, deadlocks.goals(step, measured, goals))
+        guess = guesser.guesses(measured, step_goals, previous)
+        plan = solver.plan(measured, step_goals, guess)
         control = plan.inputs[:, 0]
-        states = model.step(states, control)
+        disturbance = noise.process()
+        states = model.step(states, control) + disturbance
+        disturbances.append(disturbance)
         trajectory.append(states)
         inputs.append(control)
         records.append(StepRecord.from_plan(plan))
@@ -105,4 +120,7 @@ def simulate(
         interrupted=interrupted,
         wall_time=time.perf_counter() - started,
         rrt_stats=guesser.rrt_stats,
+        disturbances=np.array(disturbances).reshape(len(inputs), scn.num_agents, scn.state_dim)
+        if scn.disturbance.has_process_noise
+        else None,
     )

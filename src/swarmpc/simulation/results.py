@@ -1,8 +1,10 @@
 """Run results: a frozen result object and its run folder, written atomically.
 
 A run folder holds ``summary.json``, ``trajectory.npz`` and ``scenario.yaml`` (the contract of
-design.md section 8), ``steps.npz`` (per-step solver records) and, for ADMM, ``admm.npz`` (residual
-histories). It is written under a temporary name beside the target and renamed into place when
+design.md section 8; ``trajectory.npz`` adds ``disturbances`` when the run injected process noise),
+``steps.npz`` (per-step solver records: ``failures`` = failed solve calls, ``fallback`` = which
+agents applied a safe fallback plan, ``repaired`` = ADMM repair pass) and, for ADMM, ``admm.npz``
+(residual histories). It is written under a temporary name beside the target and renamed into place when
 complete, so a reader never sees a half-written folder.
 """
 
@@ -67,6 +69,7 @@ class RunResult:
     summary: dict[str, Any]
     deadlock_events: tuple[tuple[int, int], ...] = ()
     extras: dict[str, Any] = field(default_factory=dict)
+    disturbances: np.ndarray | None = None
 
     @classmethod
     def create(
@@ -79,7 +82,9 @@ class RunResult:
         interrupted: bool,
         wall_time: float,
         rrt_stats: dict[str, int] | None = None,
+        disturbances: np.ndarray | None = None,
     ) -> RunResult:
+        """Summarise a run; ``disturbances`` (T, M, 2d) is the process noise it injected, if any."""
         is_admm = scenario.solver.method == "admm"
         iterations = np.array([r.admm_iterations or 0 for r in records]) if is_admm else None
         summary = summarize(
@@ -96,6 +101,10 @@ class RunResult:
             wall_time=wall_time,
         )
         summary["fallback_steps"] = int(sum(r.fallback.any() for r in records))
+        summary["fallback_agent_steps"] = int(sum(int(r.fallback.sum()) for r in records))
+        summary["disturbance"] = (
+            scenario.disturbance.model_dump() if scenario.disturbance != type(scenario.disturbance)() else None
+        )
         summary["admm_repairs"] = int(sum(r.repaired for r in records)) if is_admm else None
         if is_admm:
             summary["admm_tol"] = scenario.solver.tol
@@ -115,6 +124,7 @@ class RunResult:
             records=tuple(records),
             summary=summary,
             deadlock_events=tuple(deadlock_events),
+            disturbances=None if disturbances is None else np.asarray(disturbances, float),
         )
 
     @property
@@ -171,15 +181,18 @@ def _write_contents(result: RunResult, folder: Path) -> None:
     (folder / "scenario.yaml").write_text(scenario_to_yaml(scn))
     (folder / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
     delta = np.asarray(scn.delta, float)
-    np.savez_compressed(
-        folder / "trajectory.npz",
-        t=result.t,
-        states=result.states,
-        inputs=result.inputs,
-        goals=scn.goal_states(),
-        delta=delta,
-        dt=np.asarray(scn.dt),
-    )
+    arrays: dict[str, np.ndarray] = {
+        "t": result.t,
+        "states": result.states,
+        "inputs": result.inputs,
+        "goals": scn.goal_states(),
+        "delta": delta,
+        "dt": np.asarray(scn.dt),
+    }
+    if result.disturbances is not None:
+        # states[k+1] = f(states[k], inputs[k]) + disturbances[k]
+        arrays["disturbances"] = result.disturbances
+    np.savez_compressed(folder / "trajectory.npz", **arrays)
     records = result.records
     m = scn.num_agents
     np.savez_compressed(
@@ -189,6 +202,7 @@ def _write_contents(result: RunResult, folder: Path) -> None:
         failures=np.array([r.failures for r in records], int),
         fallback=np.array([r.fallback for r in records], bool).reshape(len(records), m),
         max_slack=np.array([r.max_slack for r in records]),
+        repaired=np.array([r.repaired for r in records], bool),
     )
     if scn.solver.method == "admm":
         primal, dual, rho = result.residual_histories()

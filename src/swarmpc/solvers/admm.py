@@ -18,8 +18,10 @@ to the agent; the coordinator sees only what an agent transmits (its positions a
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -27,7 +29,7 @@ from swarmpc.formulation.nlp import CompiledNLP, NLPSolution, shift_blocks
 from swarmpc.formulation.ocp import OCPSettings, build_local
 from swarmpc.solvers.base import PlanStep, fallback_plan
 from swarmpc.solvers.executors import Executor, SerialExecutor
-from swarmpc.solvers.guesses import agent_guess_blocks, inputs_from_states, pair_certificates
+from swarmpc.solvers.guesses import agent_guess_blocks, inputs_from_states, pair_guess_blocks
 
 
 @dataclass(frozen=True)
@@ -44,6 +46,7 @@ class ADMMConfig:
     coupling_margin: float | None = 0.5
     stall_window: int | None = 20
     rho_bounds: tuple[float, float] = (1e-2, 1e3)
+    seed_duals: bool = True
 
 
 @dataclass(frozen=True)
@@ -82,17 +85,74 @@ class LocalResult:
     cost: float
 
 
-@dataclass(frozen=True)
-class LocalAgentFactory:
-    """Picklable recipe for an agent's local solver (built where the agent lives)."""
+class LocalSolverLadder:
+    """An agent's local NLPs for copy-slot counts 0, 1, 2, 4, 8, ... up to ``max_slots``.
 
-    settings: OCPSettings
-    slots: int
-    dynamic_copies: bool = True
+    An agent with n neighbours this step solves the smallest problem with at least n slots, so
+    its work follows its neighbourhood, not the swarm size. Each size is built on first use and
+    kept (once per shape, never rebuilt); agents in one process share the built solvers, which
+    are stateless between calls (a lock guards the solver statistics under threads). Pickling
+    drops the built solvers, so a worker process builds its own.
+    """
+
+    def __init__(
+        self, settings: OCPSettings, max_slots: int, dynamic_copies: bool,
+        plugin: str = "ipopt", options: dict[str, Any] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.max_slots = max_slots
+        self.dynamic_copies = dynamic_copies
+        self.plugin = plugin
+        self.options = options
+        self._built: dict[int, CompiledNLP] = {}
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"settings": self.settings, "max_slots": self.max_slots, "dynamic_copies": self.dynamic_copies,
+                "plugin": self.plugin, "options": self.options}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(**state)  # type: ignore[misc]
+
+    def slots_for(self, copies: int) -> int:
+        """Slot count of the problem that holds ``copies`` neighbours."""
+        if copies > self.max_slots:
+            raise ValueError(f"{copies} neighbours exceed the {self.max_slots} copy slots")
+        size = 0 if copies == 0 else 1
+        while size < copies:
+            size *= 2
+        return min(size, self.max_slots)
+
+    def solver(self, slots: int) -> CompiledNLP:
+        """The built problem with ``slots`` copy slots (built now if this is its first use)."""
+        if slots not in self._built:
+            self._built[slots] = build_local(self.settings, slots, self.dynamic_copies, self.options, self.plugin)
+        return self._built[slots]
+
+    def solve(
+        self, params: dict[str, Any], guess: dict[str, np.ndarray], fixed: dict[str, Any] | None = None,
+        *, copies: int,
+    ) -> NLPSolution:
+        """Solve the problem sized for ``copies`` neighbours (see :meth:`CompiledNLP.solve`)."""
+        with self._lock:
+            return self.solver(self.slots_for(copies)).solve(params, guess, fixed=fixed)
+
+
+class LocalAgentFactory:
+    """Picklable recipe for agents' local solvers (built where the agents live; agents made by
+    one factory object share its :class:`LocalSolverLadder`)."""
+
+    def __init__(
+        self, settings: OCPSettings, slots: int, dynamic_copies: bool = True, seed_duals: bool = True
+    ) -> None:
+        self.settings = settings
+        self.slots = slots
+        self.dynamic_copies = dynamic_copies
+        self.seed_duals = seed_duals
+        self.ladder = LocalSolverLadder(settings, slots, dynamic_copies)
 
     def __call__(self, agent: int) -> LocalAgent:
-        nlp = build_local(self.settings, self.slots, self.dynamic_copies)
-        return LocalAgent(agent, self.settings, nlp, self.slots, self.dynamic_copies)
+        return LocalAgent(agent, self.settings, self.ladder, self.dynamic_copies, self.seed_duals)
 
 
 def trajectory_through(state: np.ndarray, z: np.ndarray, s: OCPSettings) -> np.ndarray:
@@ -114,13 +174,14 @@ class LocalAgent:
     """One agent's private side of ADMM: its solver, multipliers and last solution."""
 
     def __init__(
-        self, agent: int, settings: OCPSettings, nlp: CompiledNLP, slots: int, dynamic_copies: bool
+        self, agent: int, settings: OCPSettings, nlp: LocalSolverLadder, dynamic_copies: bool,
+        seed_duals: bool = True,
     ) -> None:
         self.agent = agent
+        self.seed_duals = seed_duals
         self.dynamic_copies = dynamic_copies
         self.settings = settings
         self.nlp = nlp
-        self.slots = slots
         self._gamma_own: np.ndarray | None = None
         self._gamma: dict[int, np.ndarray] = {}
         self._last: NLPSolution | None = None
@@ -144,9 +205,11 @@ class LocalAgent:
                 previous = last.copies[self._last_neighbours.index(j)]
                 self._gamma[j] = self._gamma.get(j, 0.0) + rho * (previous - request.z_neighbours[slot])
 
-    def _initial_point(self, request: LocalRequest) -> dict[str, np.ndarray]:
+    def _initial_point(self, request: LocalRequest, seed: bool = True) -> dict[str, np.ndarray]:
+        """Primal start from the guess; certificates seeded when ``seed`` and ``seed_duals``."""
         s, first = self.settings, self.settings.first_constrained_step
-        point = agent_guess_blocks("", request.guess, s)
+        seed = seed and self.seed_duals
+        point = agent_guess_blocks("", request.guess, s, seed)
         own = request.guess[first:, : s.dim]
         for slot, z in enumerate(request.z_neighbours):
             if self.dynamic_copies:
@@ -155,7 +218,7 @@ class LocalAgent:
                 point[f"Uc{slot}"] = inputs_from_states(trajectory, s).T
             else:
                 point[f"C{slot}"] = z
-            point[f"L{slot}"] = pair_certificates(own - z.T, request.delta)
+            point.update(pair_guess_blocks(str(slot), own - z.T, request.delta, s, seed))
         return point
 
     def _copy_positions(self, solution: NLPSolution, slot: int) -> np.ndarray:
@@ -193,7 +256,8 @@ class LocalAgent:
             "Z": request.z_own,
             "Y": self._gamma_own if self._gamma_own is not None and not repair else zeros,
         }
-        for slot in range(self.slots):
+        n = len(request.neighbours)
+        for slot in range(self.nlp.slots_for(n)):
             active = slot < len(request.neighbours)
             params[f"active{slot}"] = 1.0 if active else 0.0
             if self.dynamic_copies:
@@ -206,21 +270,21 @@ class LocalAgent:
         if self._last is not None and same_shape and not request.new_step:
             point: dict[str, np.ndarray] = dict(self._last.x)
         else:
-            point = self._initial_point(request)
-            if self._last is not None and request.new_step and same_shape:
+            warm = self._last is not None and request.new_step and same_shape
+            point = self._initial_point(request, seed=not warm)  # warm: shifted L, A below
+            if warm:
                 shifted = shift_blocks(self._last.x)
                 point.update({k: v for k, v in shifted.items() if k.startswith(("L", "A"))})
         pinned = self._pinned_copies(request)
         if pinned is not None and s.collision == "soft":
             # repair: first try to keep clear of the fixed plans without slack
             strict = {**pinned, **{f"A{slot}": 0.0 for slot in range(len(request.neighbours))}}
-            solution = self.nlp.solve(params, point, fixed=strict)
+            solution = self.nlp.solve(params, point, fixed=strict, copies=n)
             if not solution.success:
-                solution = self.nlp.solve(params, point, fixed=pinned)
+                solution = self.nlp.solve(params, point, fixed=pinned, copies=n)
         else:
-            solution = self.nlp.solve(params, point, fixed=pinned)
+            solution = self.nlp.solve(params, point, fixed=pinned, copies=n)
         first = s.first_constrained_step
-        n = len(request.neighbours)
         fallback = False
         slack: list[float] = []
         if solution.success:
@@ -278,7 +342,7 @@ class ADMMSolver:
         self.delta = np.asarray(delta, float)
         self.config = config
         self.executor = executor or SerialExecutor()
-        factory = LocalAgentFactory(settings, max(num_agents - 1, 1), config.dynamic_copies)
+        factory = LocalAgentFactory(settings, max(num_agents - 1, 1), config.dynamic_copies, config.seed_duals)
         self.executor.start(factory, range(num_agents))
         self._z: np.ndarray | None = None
         self._rho = config.rho

@@ -56,15 +56,32 @@ def braking_plan(state: np.ndarray, settings: OCPSettings) -> tuple[np.ndarray, 
     return np.array(states), np.array(inputs)
 
 
+# How far (inf-norm over the state, m and m/s) the measured state may sit from where the previous
+# plan expected it for that plan to still be reused (as a warm start or a fallback). Zero would
+# never reuse a plan under measurement or process noise; 0.05 is a sixth of the default delta.
+SHIFT_TOLERANCE = 0.05
+
+
 def fallback_plan(
     state: np.ndarray, previous_states: np.ndarray | None, previous_inputs: np.ndarray | None,
-    settings: OCPSettings,
+    settings: OCPSettings, tolerance: float = SHIFT_TOLERANCE,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The previous plan shifted by one step when it starts at ``state``, else a braking plan."""
+    """A safe plan for an agent whose solve failed.
+
+    When the previous plan's next state is within ``tolerance`` of ``state``: the previous plan
+    shifted by one step (its remaining inputs replayed from ``state``, so the result obeys the
+    dynamics exactly even under noise, then one braking input). Otherwise, or without a previous
+    plan, :func:`braking_plan`. Either way the first input respects the acceleration limit.
+    """
+    state = np.asarray(state, float)
     if previous_states is not None and previous_inputs is not None:
-        if np.allclose(previous_states[1], state, atol=1e-9):
-            braking_tail_states, braking_tail_inputs = braking_plan(previous_states[-1], settings)
-            states = np.vstack([previous_states[1:], braking_tail_states[1:2]])
-            inputs = np.vstack([previous_inputs[1:], braking_tail_inputs[:1]])
-            return states, inputs
+        gap = np.max(np.abs(previous_states[1] - state))
+        # a plan that already starts at ``state`` (this step's own) is not a previous plan
+        if gap <= tolerance and gap <= np.max(np.abs(previous_states[0] - state)):
+            model = DoubleIntegrator(settings.dim, settings.dt, settings.discretization)  # type: ignore[arg-type]
+            d, amax = settings.dim, input_bounds(settings)
+            replayed = model.rollout(state, previous_inputs[1:])
+            tail = np.clip(-replayed[-1][d:] / settings.dt, -amax, amax)
+            inputs = np.vstack([previous_inputs[1:], tail[None]])
+            return np.vstack([replayed, model.step(replayed[-1], tail)[None]]), inputs
     return braking_plan(state, settings)

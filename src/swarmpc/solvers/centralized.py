@@ -9,14 +9,17 @@ import numpy as np
 from swarmpc.formulation.nlp import NLPSolution, shift_blocks
 from swarmpc.formulation.ocp import OCPSettings, build_centralized, pair_tag
 from swarmpc.solvers.base import PlanStep, fallback_plan
-from swarmpc.solvers.guesses import agent_guess_blocks, pair_certificates
+from swarmpc.solvers.guesses import agent_guess_blocks, pair_guess_blocks
 
 
 class CentralizedSolver:
     """Solves the global OCP with IPOPT; built once, warm-started from its shifted solution."""
 
-    def __init__(self, settings: OCPSettings, num_agents: int, delta: np.ndarray) -> None:
+    def __init__(
+        self, settings: OCPSettings, num_agents: int, delta: np.ndarray, seed_duals: bool = True
+    ) -> None:
         self.settings = settings
+        self.seed_duals = seed_duals
         self.num_agents = num_agents
         self.delta = np.asarray(delta, float)
         self.nlp = build_centralized(settings, num_agents)
@@ -27,16 +30,16 @@ class CentralizedSolver:
         self._previous = None
         self._previous_plan = None
 
-    def initial_point(self, guess: np.ndarray) -> dict[str, np.ndarray]:
+    def initial_point(self, guess: np.ndarray, seed: bool = True) -> dict[str, np.ndarray]:
         """Primal guess from state guesses (M, N+1, 2d): trajectories and certificates."""
         s, first = self.settings, self.settings.first_constrained_step
         point: dict[str, np.ndarray] = {}
         for i in range(self.num_agents):
-            point.update(agent_guess_blocks(str(i), guess[i], s))
+            point.update(agent_guess_blocks(str(i), guess[i], s, seed and self.seed_duals))
         for i in range(self.num_agents):
             for j in range(i + 1, self.num_agents):
                 offsets = guess[i, first:, : s.dim] - guess[j, first:, : s.dim]
-                point[f"L{pair_tag(i, j)}"] = pair_certificates(offsets, self.delta)
+                point.update(pair_guess_blocks(pair_tag(i, j), offsets, self.delta, s, seed and self.seed_duals))
         return point
 
     def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep:
@@ -46,7 +49,7 @@ class CentralizedSolver:
         for i in range(self.num_agents):
             params[f"x0{i}"] = states[i]
             params[f"goal{i}"] = goals[i]
-        point = self.initial_point(guess)
+        point = self.initial_point(guess, seed=self._previous is None)  # else shifted L, A below
         lam_x = lam_g = None
         if self._previous is not None:
             shifted = shift_blocks(self._previous.x)
@@ -83,7 +86,7 @@ class CentralizedSolver:
             states=plans_x,
             inputs=plans_u,
             predicted_cost=solution.cost,
-            max_slack=float(max(slack)) if slack and solution.success else 0.0,
+            max_slack=max(0.0, float(max(slack))) if slack and solution.success else 0.0,
             wall_time=elapsed,
             agent_times=np.full(M, solution.solve_time / M),
             failures=0 if solution.success else 1,

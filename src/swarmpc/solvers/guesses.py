@@ -1,8 +1,10 @@
 """Initial guesses for the MPC solvers: states, inputs and OBCA certificates.
 
 A guess is an (N+1, 2d) state trajectory per agent whose first row is the measured state. From it
-the inputs follow (velocity differences) and the certificates lambda follow from geometry, so a
-solver is seeded with a primal point that is consistent in every block.
+the inputs follow (velocity differences) and the certificates lambda (and soft slacks) follow from
+geometry (:mod:`swarmpc.solvers.dual_seed`), so a solver is seeded with a primal point that is
+consistent in every block. With ``seed_duals=False`` the certificates are left out and the solver
+starts them at 0 (the ablation measured in docs/initial-guesses.md).
 """
 
 from __future__ import annotations
@@ -10,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.model.geometry import box_certificate, polytope_certificate
+from swarmpc.model.geometry import box_certificate
+from swarmpc.solvers.dual_seed import obstacle_seed, pair_seed, polytope_certificate
 
 
 def inputs_from_states(states: np.ndarray, settings: OCPSettings) -> np.ndarray:
@@ -37,10 +40,21 @@ def nominal_speed(settings: OCPSettings) -> float:
     return 0.8 * settings.speed if settings.speed is not None else 1.0
 
 
-def agent_guess_blocks(tag: str, states: np.ndarray, settings: OCPSettings) -> dict[str, np.ndarray]:
-    """Primal guess of one agent's own blocks: X, U and its static-obstacle certificates."""
+def agent_guess_blocks(
+    tag: str, states: np.ndarray, settings: OCPSettings, seed_duals: bool = True
+) -> dict[str, np.ndarray]:
+    """Primal guess of one agent's own blocks: X, U and (``seed_duals``) its static-obstacle
+    certificates and soft slacks."""
     first = settings.first_constrained_step
     blocks = {f"X{tag}": states.T, f"U{tag}": inputs_from_states(states, settings).T}
-    for n, (G, g) in enumerate(settings.obstacles):
-        blocks[f"L{tag}_o{n}"] = obstacle_certificates(states[first:, : settings.dim], G, g)
+    if seed_duals:
+        blocks.update(obstacle_seed(tag, states[first:, : settings.dim], settings))
     return blocks
+
+
+def pair_guess_blocks(
+    tag: str, offsets: np.ndarray, half_size: np.ndarray, settings: OCPSettings, seed_duals: bool = True
+) -> dict[str, np.ndarray]:
+    """Certificate (and soft slack) guess of a pair's blocks from guessed offsets (K, d); empty
+    without ``seed_duals`` (the solver then starts them at 0)."""
+    return pair_seed(tag, offsets, half_size, settings) if seed_duals else {}

@@ -1,0 +1,248 @@
+"""The scaling benchmark behind ``swarmpc bench``: swarms of growing size, one table.
+
+Families (all with Δ = 0.3 and the paper's weights): ``circle`` (2D antipodal swap), ``sphere``
+(3D antipodal swap) and ``random`` (3D, seeded starts and goals in a 3 x 3 x 2 m box, >= 0.5 m
+apart, acceleration <= 1 m/s² per axis, goal tolerance 0.1 m). Each case is one closed-loop run in
+its own process; collisions and separations come from the run's trajectory, never from a flag.
+Numbers are wall-clock measurements on whatever machine runs it: read them as such.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from swarmpc.config import Scenario
+from swarmpc.model.geometry import count_collisions, inf_separation_ratio
+from swarmpc.scenarios import builtin_scenario
+from swarmpc.simulation.loop import StopFlag, simulate
+from swarmpc.solvers.executors import available_cores, make_executor
+
+FAMILIES = ("circle", "sphere", "random")
+FULL_SIZES = (4, 8, 16, 32, 64)
+QUICK_SIZES = (4, 8)
+
+
+@dataclass(frozen=True)
+class BenchCase:
+    """One run of the benchmark: a family, a swarm size, a seed and the solver to use."""
+
+    family: str
+    agents: int
+    seed: int
+    method: str = "admm"
+    executor: str = "serial"
+    workers: int | None = None
+    budget_s: float = 600.0
+    max_steps: int | None = None
+
+    def scenario(self) -> Scenario:
+        """The case's scenario (built-in generators; see the module docstring)."""
+        if self.family == "random":
+            scn = builtin_scenario("random", agents=self.agents, dim=3, seed=self.seed)
+        else:
+            scn = builtin_scenario("circle", agents=self.agents, dim=2 if self.family == "circle" else 3)
+            scn = scn.with_updates(**{"limits.accel": 1.0, "stop.goal_tolerance": 0.1, "seed": self.seed})
+        updates: dict[str, Any] = {"solver.method": self.method}
+        if self.max_steps is not None:
+            updates["stop.max_steps"] = self.max_steps
+        return scn.with_updates(**updates)
+
+
+@dataclass(frozen=True)
+class CaseOutcome:
+    """What one case measured (a row of the JSON file)."""
+
+    case: BenchCase
+    steps: int
+    timed_out: bool
+    all_reached: bool
+    collisions: int
+    min_separation_ratio: float
+    time_to_goal_s: float | None
+    cost: float
+    step_ms: list[float]
+    agent_step_ms: list[float]
+    iterations: list[int]
+    solver_failures: int
+    wall_time_s: float
+
+
+def run_case(case: BenchCase) -> CaseOutcome:
+    """Run one case in closed loop, stopping cleanly when its wall-time budget is spent."""
+    scn = case.scenario()
+    options = {"workers": case.workers} if case.executor == "process" and case.workers else {}
+    executor = make_executor(case.executor, **options) if case.method == "admm" else None
+    stop = StopFlag()
+    timer = threading.Timer(case.budget_s, lambda: setattr(stop, "requested", True))
+    timer.start()
+    started = time.perf_counter()
+    try:
+        result = simulate(scn, stop_flag=stop, executor=executor)
+    finally:
+        timer.cancel()
+    wall = time.perf_counter() - started
+    d = scn.dim
+    positions = result.states[:, :, :d]
+    delta = scn.delta_vector
+    collisions = count_collisions(positions, delta)
+    separation = float(inf_separation_ratio(positions, delta).min()) if scn.num_agents > 1 else float("inf")
+    summary = result.summary
+    records = result.records
+    return CaseOutcome(
+        case=case,
+        steps=len(records),
+        timed_out=bool(summary["interrupted"]),
+        all_reached=bool(summary["all_reached"]),
+        collisions=int(collisions),
+        min_separation_ratio=float(separation),
+        time_to_goal_s=float(summary["sim_time_s"]) if summary["all_reached"] else None,
+        cost=float(summary["cost"]),
+        step_ms=[1000.0 * r.wall_time for r in records],
+        agent_step_ms=[1000.0 * t for r in records for t in r.agent_times],
+        iterations=[int(r.admm_iterations) for r in records if r.admm_iterations is not None],
+        solver_failures=int(summary["solver_failures"]),
+        wall_time_s=wall,
+    )
+
+
+def plan_cases(
+    families: Iterable[str], sizes: Iterable[int], seeds: int, executor: str, workers: int | None,
+    budget_s: float, central_max_agents: int,
+) -> list[BenchCase]:
+    """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed)."""
+    cases = []
+    for family in families:
+        for m in sizes:
+            for seed in range(seeds if family == "random" else 1):
+                cases.append(BenchCase(family, m, seed, "admm", executor, workers, budget_s))
+                if m <= central_max_agents:
+                    cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s))
+    return cases
+
+
+def _percentile(values: Sequence[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
+
+
+def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
+    """One row per (family, size): rates over seeds, pooled step statistics, cost gap vs centralised."""
+    rows = []
+    keys = sorted({(o.case.family, o.case.agents) for o in outcomes}, key=lambda k: (FAMILIES.index(k[0]), k[1]))
+    for family, m in keys:
+        admm = [o for o in outcomes if (o.case.family, o.case.agents, o.case.method) == (family, m, "admm")]
+        central = {o.case.seed: o for o in outcomes
+                   if (o.case.family, o.case.agents, o.case.method) == (family, m, "centralized")}
+        gaps = [100.0 * (o.cost / central[o.case.seed].cost - 1.0) for o in admm
+                if o.case.seed in central and o.all_reached and central[o.case.seed].all_reached]
+        steps = [t for o in admm for t in o.step_ms]
+        agent = [t for o in admm for t in o.agent_step_ms]
+        iterations = [k for o in admm for k in o.iterations]
+        reached_times = [o.time_to_goal_s for o in admm if o.time_to_goal_s is not None]
+        rows.append({
+            "family": family, "agents": m, "runs": len(admm),
+            "all_reached_rate": float(np.mean([o.all_reached for o in admm])) if admm else None,
+            "collision_free_rate": float(np.mean([o.collisions == 0 for o in admm])) if admm else None,
+            "timed_out": sum(o.timed_out for o in admm),
+            "min_separation_ratio": min((o.min_separation_ratio for o in admm), default=None),
+            "time_to_goal_s_median": _percentile(reached_times, 50),
+            "step_ms_median": _percentile(steps, 50), "step_ms_p95": _percentile(steps, 95),
+            "agent_ms_median": _percentile(agent, 50), "agent_ms_p95": _percentile(agent, 95),
+            "iterations_mean": float(np.mean(iterations)) if iterations else None,
+            "iterations_max": max(iterations, default=None),
+            "solver_failures": sum(o.solver_failures for o in admm),
+            "cost_gap_pct_median": _percentile(gaps, 50),
+            "central_step_ms_median": _percentile([t for o in central.values() for t in o.step_ms], 50),
+        })
+    return rows
+
+
+def _cell(value: Any, fmt: str = "{:.1f}") -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return fmt.format(value)
+    return str(value)
+
+
+def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The benchmark table (one line per family and swarm size)."""
+    header = ("| family | M | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
+              "| step ms median | p95 | per-agent ms median | p95 | ADMM it. mean | max | failures "
+              "| cost vs central | central step ms |")
+    lines = [header, "|" + "---|" * (header.count("|") - 1)]
+    for r in rows:
+        lines.append("| " + " | ".join([
+            r["family"], str(r["agents"]), str(r["runs"]),
+            _cell(None if r["all_reached_rate"] is None else 100 * r["all_reached_rate"], "{:.0f}%"),
+            _cell(None if r["collision_free_rate"] is None else 100 * r["collision_free_rate"], "{:.0f}%"),
+            str(r["timed_out"]), _cell(r["min_separation_ratio"], "{:.2f}"),
+            _cell(r["time_to_goal_s_median"]), _cell(r["step_ms_median"]), _cell(r["step_ms_p95"]),
+            _cell(r["agent_ms_median"]), _cell(r["agent_ms_p95"]), _cell(r["iterations_mean"]),
+            _cell(r["iterations_max"]), str(r["solver_failures"]),
+            _cell(r["cost_gap_pct_median"], "{:+.1f}%"), _cell(r["central_step_ms_median"]),
+        ]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def run_bench(
+    out: Path,
+    quick: bool = False,
+    families: Sequence[str] = FAMILIES,
+    sizes: Sequence[int] | None = None,
+    seeds: int | None = None,
+    jobs: int | None = None,
+    executor: str = "serial",
+    workers: int | None = None,
+    budget_s: float = 600.0,
+    central_max_agents: int = 16,
+    log: Callable[[str], None] = lambda _line: None,
+) -> tuple[Path, Path]:
+    """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
+
+    Cases run ``jobs`` at a time in separate processes (each case itself uses ``executor``);
+    per-step times are therefore measured with ``jobs`` runs sharing the machine.
+    """
+    unknown = sorted(set(families) - set(FAMILIES))
+    if unknown:
+        raise ValueError(f"families: unknown {', '.join(unknown)} (choose from {', '.join(FAMILIES)})")
+    sizes = tuple(sizes or (QUICK_SIZES if quick else FULL_SIZES))
+    seeds = seeds or (1 if quick else 5)
+    cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
+                       min(central_max_agents, 4) if quick else central_max_agents)
+    jobs = jobs or (1 if executor != "serial" else available_cores())
+    outcomes: list[CaseOutcome] = []
+    started = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        futures = {pool.submit(run_case, case): case for case in cases}
+        for done, future in enumerate(as_completed(futures), 1):
+            outcome = future.result()
+            outcomes.append(outcome)
+            c = outcome.case
+            log(f"[{done}/{len(cases)}] {c.family} M={c.agents} seed={c.seed} {c.method}: "
+                f"{outcome.steps} steps, reached={outcome.all_reached}, collisions={outcome.collisions}, "
+                f"{outcome.wall_time_s:.0f} s")
+    rows = aggregate(outcomes)
+    out.mkdir(parents=True, exist_ok=True)
+    markdown = out / "bench.md"
+    machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
+    markdown.write_text(
+        f"# swarmpc bench\n\n{len(cases)} runs in {time.perf_counter() - started:.0f} s ({machine}).\n\n"
+        + markdown_table(rows)
+    )
+    data = {"machine": machine, "rows": rows,
+            "runs": [{**asdict(o), "step_ms": None, "agent_step_ms": None, "iterations": None,
+                      "step_ms_median": _percentile(o.step_ms, 50),
+                      "agent_ms_median": _percentile(o.agent_step_ms, 50)} for o in outcomes]}
+    json_path = out / "bench.json"
+    json_path.write_text(json.dumps(data, indent=2))
+    return markdown, json_path

@@ -1,0 +1,361 @@
+"""The paper's experiment set (Section V): define it, run it, collect it, write figures and a report.
+
+``swarmpc reproduce`` calls :func:`reproduce`. The set (design.md section 10): the built-in
+``paper-2d`` and ``paper-3d`` swaps (M = 4, N = 10, dt = 0.1, Q = 0.1 I, R = I, Qf = I) for
+Δ ∈ {0.1, 0.3, 0.5}, hard and soft OBCA, consensus ADMM, each also with the centralised solver
+for reference; plus the initial-guess study at Δ = 0.3 (straight, shifted, RRT, auto). Every run
+is an ordinary run folder under ``OUT/runs/``; the report reads its numbers back from those
+folders' ``summary.json``, so a number in the report is always one a run wrote. Seeds are fixed
+(scenario ``seed`` 0, which also seeds RRT).
+
+Runs go to a pool of worker processes (``jobs``); each run is single-threaded, so per-step times
+are comparable between runs only as far as the machine is not oversubscribed.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from swarmpc.config import Scenario, scenario_to_yaml
+
+SCENARIOS = ("paper-2d", "paper-3d")
+PAPER_DELTAS = (0.1, 0.3, 0.5)
+FORMS = ("hard", "soft")
+GUESSES = ("straight", "shifted", "rrt", "auto")
+GUESS_DELTA = 0.3
+SEED = 0
+RUNS_DIR = "runs"
+MANIFEST = "reproduce.json"
+REPORT = "report.md"
+
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One closed-loop run of the set: a built-in scenario and the settings varied around it."""
+
+    scenario: str
+    delta: float
+    collision: str = "hard"
+    method: str = "admm"
+    guess: str = "auto"
+    max_steps: int | None = None
+    seed: int = SEED
+
+    @property
+    def name(self) -> str:
+        """Run folder name, unique within a set (e.g. ``paper-2d_d0.3_hard_admm_auto``)."""
+        return f"{self.scenario}_d{self.delta:g}_{self.collision}_{self.method}_{self.guess}"
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension, from the scenario name."""
+        return 3 if self.scenario.endswith("3d") else 2
+
+    def build(self) -> Scenario:
+        """The fully resolved scenario of this run."""
+        from swarmpc.scenarios import builtin_scenario
+
+        return builtin_scenario(self.scenario, delta=self.delta).with_updates(
+            **{
+                "collision": self.collision,
+                "seed": self.seed,
+                "solver.method": self.method,
+                "solver.initial_guess": self.guess,
+                "stop.max_steps": self.max_steps,
+            }
+        )
+
+    def expected_cost(self) -> float:
+        """Rough relative run time, to start the longest runs first (better packing)."""
+        cost = 1.0 if self.method == "centralized" else 10.0
+        cost *= 1.4 if self.collision == "soft" else 1.0
+        return cost * (1.2 if self.dim == 3 else 1.0)
+
+
+@dataclass(frozen=True)
+class ReproducePlan:
+    """Which runs make up the set; :func:`plan_runs` gives the full and the quick plan."""
+
+    quick: bool
+    deltas: tuple[tuple[str, tuple[float, ...]], ...]
+    forms: tuple[str, ...]
+    centralized: bool
+    guess_scenarios: tuple[str, ...]
+    guesses: tuple[str, ...]
+    guess_delta: float
+    max_steps: int | None
+    animation_frames: int
+
+    def main_specs(self) -> list[RunSpec]:
+        """ADMM runs over scenario x Δ x form (the paper's Figs. 3-5 and the hard/soft table)."""
+        return [
+            RunSpec(name, delta, form, "admm", "auto", self.max_steps)
+            for name, deltas in self.deltas
+            for delta in deltas
+            for form in self.forms
+        ]
+
+    def centralized_specs(self) -> list[RunSpec]:
+        """The same cases with the centralised solver (optimality reference)."""
+        if not self.centralized:
+            return []
+        return [RunSpec(s.scenario, s.delta, s.collision, "centralized", "auto", s.max_steps)
+                for s in self.main_specs()]
+
+    def guess_specs(self) -> list[RunSpec]:
+        """ADMM, hard form, Δ = ``guess_delta``, one run per initial-guess strategy."""
+        return [RunSpec(name, self.guess_delta, "hard", "admm", guess, self.max_steps)
+                for name in self.guess_scenarios for guess in self.guesses]
+
+    def specs(self) -> list[RunSpec]:
+        """Every distinct run, longest expected first."""
+        unique = {s.name: s for s in [*self.main_specs(), *self.guess_specs(), *self.centralized_specs()]}
+        return sorted(unique.values(), key=lambda s: -s.expected_cost())
+
+    def representative(self, scenario: str) -> RunSpec:
+        """The run shown in the trajectory and convergence figures: ADMM, hard, Δ = 0.3 if run."""
+        deltas = dict(self.deltas)[scenario]
+        delta = self.guess_delta if self.guess_delta in deltas else deltas[len(deltas) // 2]
+        return RunSpec(scenario, delta, "hard", "admm", "auto", self.max_steps)
+
+
+def plan_runs(quick: bool = False) -> ReproducePlan:
+    """The paper's set; ``quick``: fewer Δ values, 25 MPC steps, a smaller guess study (< 2 min)."""
+    if quick:
+        return ReproducePlan(
+            quick=True,
+            deltas=(("paper-2d", (0.1, 0.3)), ("paper-3d", (0.3,))),
+            forms=FORMS,
+            centralized=True,
+            guess_scenarios=("paper-2d",),
+            guesses=("straight", "rrt", "auto"),
+            guess_delta=GUESS_DELTA,
+            max_steps=25,
+            animation_frames=20,
+        )
+    return ReproducePlan(
+        quick=False,
+        deltas=tuple((name, PAPER_DELTAS) for name in SCENARIOS),
+        forms=FORMS,
+        centralized=True,
+        guess_scenarios=SCENARIOS,
+        guesses=GUESSES,
+        guess_delta=GUESS_DELTA,
+        max_steps=None,
+        animation_frames=150,
+    )
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What executing one spec gave: its folder, or the one-line error that stopped it."""
+
+    spec: RunSpec
+    folder: str
+    error: str | None
+    seconds: float
+    cpu_seconds: float = 0.0
+    reused: bool = False
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """A finished run of the set: its spec, its folder (relative to the output folder) and summary."""
+
+    spec: RunSpec
+    folder: str
+    summary: dict[str, Any]
+
+
+def run_one(spec: RunSpec, folder: str) -> RunOutcome:
+    """Simulate one spec and write its run folder (executed in a worker process)."""
+    from swarmpc.simulation.loop import simulate
+    from swarmpc.simulation.results import write_run
+
+    started, cpu = time.perf_counter(), time.process_time()
+    error = None
+    try:
+        write_run(simulate(spec.build()), folder)
+    except Exception as err:  # one failed run must not lose the others
+        message = str(err).splitlines()[0] if str(err) else ""
+        error = f"{type(err).__name__}: {message}"
+    return RunOutcome(spec, folder, error, time.perf_counter() - started, time.process_time() - cpu)
+
+
+def _reusable(spec: RunSpec, folder: Path) -> bool:
+    """A complete run folder of exactly this scenario already exists."""
+    try:
+        return (folder / "summary.json").is_file() and (folder / "scenario.yaml").read_text() == scenario_to_yaml(
+            spec.build()
+        )
+    except OSError:
+        return False
+
+
+def execute(
+    specs: Sequence[RunSpec], runs_dir: Path, jobs: int, reuse: bool = False, log: Log | None = None
+) -> list[RunOutcome]:
+    """Run every spec into ``runs_dir/<name>``, ``jobs`` at a time; outcomes in ``specs`` order."""
+    say = log or (lambda _line: None)
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    outcomes: dict[str, RunOutcome] = {}
+    todo = []
+    for spec in specs:
+        folder = runs_dir / spec.name
+        if reuse and _reusable(spec, folder):
+            outcomes[spec.name] = RunOutcome(spec, str(folder), None, 0.0, 0.0, reused=True)
+        else:
+            todo.append(spec)
+    total, done = len(specs), len(outcomes)
+
+    def report(outcome: RunOutcome) -> None:
+        nonlocal done
+        done += 1
+        outcomes[outcome.spec.name] = outcome
+        status = (f"FAILED ({outcome.error})" if outcome.error
+                  else f"{outcome.seconds:.0f} s ({outcome.cpu_seconds:.0f} s CPU)")
+        say(f"[{done}/{total}] {outcome.spec.name}: {status}")
+
+    if jobs <= 1 or len(todo) <= 1:
+        for spec in todo:
+            report(run_one(spec, str(runs_dir / spec.name)))
+    else:
+        context = multiprocessing.get_context("spawn")  # no fork of a process that may hold threads
+        with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=context) as pool:
+            futures: list[Future[RunOutcome]] = [
+                pool.submit(run_one, spec, str(runs_dir / spec.name)) for spec in todo
+            ]
+            for future in as_completed(futures):
+                report(future.result())
+    return [outcomes[spec.name] for spec in specs]
+
+
+def collect(out: Path, outcomes: Sequence[RunOutcome]) -> list[RunRecord]:
+    """Read back the summary of every successful run (the only source of the report's numbers)."""
+    records = []
+    for outcome in outcomes:
+        if outcome.error is not None:
+            continue
+        folder = Path(outcome.folder)
+        summary = json.loads((folder / "summary.json").read_text())
+        records.append(RunRecord(outcome.spec, folder.relative_to(out).as_posix(), summary))
+    return records
+
+
+def _loadavg() -> list[float] | None:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def default_jobs() -> int:
+    """One worker per core."""
+    return max(1, os.cpu_count() or 1)
+
+
+def reproduce(
+    out: str | os.PathLike[str] = "results/reproduce",
+    quick: bool = False,
+    jobs: int | None = None,
+    reuse: bool = False,
+    animations: bool = True,
+    log: Log | None = None,
+) -> Path:
+    """Run the paper's experiment set and write figures, ``report.md`` and ``reproduce.json``.
+
+    Parameters
+    ----------
+    out : path
+        Output folder; run folders go to ``out/runs/<name>``.
+    quick : bool
+        The small plan of :func:`plan_runs` (a smoke test of the whole pipeline).
+    jobs : int, optional
+        Worker processes; default one per core.
+    reuse : bool
+        Keep run folders whose ``scenario.yaml`` already matches instead of re-running them.
+    animations : bool
+        Also write GIF animations of the representative runs.
+    log : callable, optional
+        Receives one progress line per finished run.
+
+    Returns
+    -------
+    Path
+        The written ``report.md``.
+    """
+    from swarmpc.experiments.figures import write_figures
+    from swarmpc.experiments.report import write_report
+
+    say = log or (lambda _line: None)
+    folder = Path(out).resolve()
+    folder.mkdir(parents=True, exist_ok=True)
+    plan = plan_runs(quick)
+    jobs = jobs or default_jobs()
+    specs = plan.specs()
+    say(f"reproduce: {len(specs)} runs, {jobs} parallel jobs, into {folder}/{RUNS_DIR}/")
+    load_before = _loadavg()
+    started_utc = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
+    started = time.perf_counter()
+    outcomes = execute(specs, folder / RUNS_DIR, jobs, reuse=reuse, log=say)
+    runs_seconds = time.perf_counter() - started
+    records = collect(folder, outcomes)
+    figures = write_figures(folder, plan, records, animations=animations)
+    total_seconds = time.perf_counter() - started
+    manifest = {
+        "quick": quick,
+        "started_utc": started_utc,
+        "jobs": jobs,
+        "cpu_count": os.cpu_count(),
+        "loadavg_before": load_before,
+        "loadavg_after": _loadavg(),
+        "runs_wall_time_s": runs_seconds,
+        "runs_cpu_time_s": sum(o.cpu_seconds for o in outcomes),
+        "wall_time_s": total_seconds,
+        "plan": asdict(plan),
+        "figures": figures,
+        "runs": [
+            {"name": o.spec.name, "folder": Path(o.folder).relative_to(folder).as_posix(),
+             "spec": asdict(o.spec), "error": o.error, "seconds": o.seconds, "cpu_seconds": o.cpu_seconds,
+             "reused": o.reused}
+            for o in outcomes
+        ],
+    }
+    (folder / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
+    report = write_report(folder, plan, records, manifest)
+    say(f"reproduce: wrote {report} ({total_seconds:.0f} s)")
+    return report
+
+
+def load_set(out: str | os.PathLike[str]) -> tuple[ReproducePlan, list[RunRecord], dict[str, Any]]:
+    """Plan, records and manifest of a finished ``reproduce`` output folder (for re-rendering)."""
+    folder = Path(out).resolve()
+    manifest = json.loads((folder / MANIFEST).read_text())
+    raw = manifest["plan"]
+    plan = ReproducePlan(**{
+        **raw,
+        "deltas": tuple((name, tuple(deltas)) for name, deltas in raw["deltas"]),
+        **{key: tuple(raw[key]) for key in ("forms", "guess_scenarios", "guesses")},
+    })
+    outcomes = [RunOutcome(RunSpec(**run["spec"]), str(folder / run["folder"]), run["error"], run["seconds"],
+                           run.get("cpu_seconds", 0.0)) for run in manifest["runs"]]
+    return plan, collect(folder, outcomes), manifest
+
+
+def export_doc_figures(out: str | os.PathLike[str], dest: str | os.PathLike[str], dpi: int = 90) -> dict[str, str]:
+    """Re-render a finished set's figures as small palette PNGs ``dest/repro-*.png`` (the docs copies)."""
+    from swarmpc.experiments.figures import write_figures
+
+    plan, records, _manifest = load_set(out)
+    return write_figures(Path(out).resolve(), plan, records, animations=False, dest=Path(dest), prefix="repro-",
+                         dpi=dpi, palette=True)

@@ -1,0 +1,56 @@
+"""Seeded uncertainty for the closed loop: process noise on the true state, measurement noise on
+what the planner sees, and the planner's tightened delta.
+
+The draws come from generators seeded by the scenario's ``seed`` (one stream for process noise,
+another for measurement noise, so switching one on does not change the other's draws); a run
+with the same scenario is reproducible. With the default (all zero) block nothing is drawn and
+the loop is the nominal one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from swarmpc.config import Disturbance, Scenario
+
+_PROCESS_STREAM = 1
+_MEASUREMENT_STREAM = 2
+
+
+def planner_delta(scn: Scenario) -> np.ndarray:
+    """Half-size of the box the planner keeps agents out of: the true delta plus the tightening."""
+    return scn.delta_vector + scn.disturbance.tightening
+
+
+class DisturbanceModel:
+    """Draws the per-step process noise (M, 2d) and the measurement noise (M, 2d) of a run."""
+
+    def __init__(self, config: Disturbance, num_agents: int, dim: int, seed: int) -> None:
+        self.config = config
+        self.shape = (num_agents, 2 * dim)
+        self.dim = dim
+        self._process = np.random.default_rng([seed, _PROCESS_STREAM])
+        self._measurement = np.random.default_rng([seed, _MEASUREMENT_STREAM])
+
+    @classmethod
+    def from_scenario(cls, scn: Scenario) -> DisturbanceModel:
+        return cls(scn.disturbance, scn.num_agents, scn.dim, scn.seed)
+
+    def _std(self, position: float, velocity: float) -> np.ndarray:
+        return np.concatenate([np.full(self.dim, position), np.full(self.dim, velocity)])
+
+    def process(self) -> np.ndarray:
+        """Additive noise on the true state after one step (zeros when process noise is off)."""
+        c = self.config
+        if not c.has_process_noise:
+            return np.zeros(self.shape)
+        std = self._std(c.process_position_std, c.process_velocity_std)
+        return self._process.standard_normal(self.shape) * std
+
+    def measurement(self) -> np.ndarray:
+        """Noise on the state the planner sees this step (zeros when measurement noise is off)."""
+        c = self.config
+        if not c.has_measurement_noise:
+            return np.zeros(self.shape)
+        std = self._std(c.measurement_position_std, c.measurement_velocity_std)
+        return self._measurement.standard_normal(self.shape) * std

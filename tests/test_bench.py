@@ -1,0 +1,90 @@
+"""The scaling benchmark: a real small case end to end, and the aggregation it reports."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from swarmpc.bench import BenchCase, CaseOutcome, aggregate, markdown_table, plan_cases, run_bench, run_case
+
+
+def outcome(family: str, agents: int, seed: int, method: str, cost: float, reached: bool = True,
+            collisions: int = 0) -> CaseOutcome:
+    return CaseOutcome(
+        case=BenchCase(family, agents, seed, method), steps=10, timed_out=False, all_reached=reached,
+        collisions=collisions, min_separation_ratio=1.2, time_to_goal_s=1.0 if reached else None, cost=cost,
+        step_ms=[10.0, 20.0], agent_step_ms=[2.0, 4.0, 6.0], iterations=[1, 3], solver_failures=0,
+        wall_time_s=1.0,
+    )
+
+
+def test_case_scenarios_follow_the_benchmark_definition():
+    random = BenchCase("random", 6, 2).scenario()
+    assert random.dim == 3 and random.num_agents == 6 and random.seed == 2
+    lower, upper = random.bounds()
+    assert np.allclose(upper - lower, [3.0, 3.0, 2.0]) and lower[2] == pytest.approx(0.2)
+    sphere = BenchCase("sphere", 8, 0, method="centralized").scenario()
+    assert sphere.dim == 3 and sphere.solver.method == "centralized"
+    assert sphere.limits.accel is not None and sphere.stop.goal_tolerance == pytest.approx(0.1)
+
+
+def test_plan_runs_centralised_only_up_to_its_size_limit():
+    cases = plan_cases(["random", "circle"], [4, 32], seeds=3, executor="serial", workers=None,
+                       budget_s=60.0, central_max_agents=16)
+    central = [c for c in cases if c.method == "centralized"]
+    assert {c.agents for c in central} == {4}
+    assert sum(c.family == "random" and c.method == "admm" for c in cases) == 6
+    assert sum(c.family == "circle" and c.method == "admm" for c in cases) == 2  # deterministic: one run
+
+
+def test_aggregate_rates_and_cost_gap():
+    rows = aggregate([
+        outcome("random", 4, 0, "admm", 110.0), outcome("random", 4, 1, "admm", 90.0, reached=False, collisions=2),
+        outcome("random", 4, 0, "centralized", 100.0), outcome("random", 4, 1, "centralized", 100.0),
+    ])
+    (row,) = rows
+    assert row["runs"] == 2 and row["all_reached_rate"] == 0.5 and row["collision_free_rate"] == 0.5
+    assert row["cost_gap_pct_median"] == pytest.approx(10.0)  # only seeds where both reached
+    assert row["agent_ms_median"] == pytest.approx(4.0) and row["iterations_max"] == 3
+    table = markdown_table(rows)
+    assert "| random | 4 | 2 | 50% | 50% |" in table and "+10.0%" in table
+
+
+def test_real_case_recomputes_safety_from_the_trajectory():
+    result = run_case(BenchCase("random", 3, 0, max_steps=40))
+    assert result.steps == 40 and not result.timed_out
+    assert len(result.agent_step_ms) == 3 * result.steps and result.iterations
+    assert result.collisions == 0 and result.min_separation_ratio >= 1.0
+
+
+def test_run_bench_writes_table_and_json(tmp_path, monkeypatch):
+    monkeypatch.setattr("swarmpc.bench.run_case", lambda case: outcome(case.family, case.agents, case.seed,
+                                                                        case.method, 100.0))
+    monkeypatch.setattr("swarmpc.bench.ProcessPoolExecutor", _InlinePool)
+    markdown, data = run_bench(tmp_path, quick=True, families=["circle", "random"])
+    text = markdown.read_text()
+    assert text.count("| circle |") == 2 and text.count("| random |") == 2
+    assert len(json.loads(data.read_text())["rows"]) == 4
+    with pytest.raises(ValueError, match="families: unknown blob"):
+        run_bench(tmp_path, families=["blob"])
+
+
+class _InlinePool:
+    """Runs submitted work at once in this process (the pool itself is not under test here)."""
+
+    def __init__(self, max_workers: int) -> None:
+        self.max_workers = max_workers
+
+    def __enter__(self) -> _InlinePool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+        future: Future = Future()
+        future.set_result(fn(*args))
+        return future

@@ -1,0 +1,116 @@
+"""Symmetric swaps: agents that stall far from their goal are detected (``deadlocks`` in the
+summary) and detoured until every agent reaches its goal without a collision."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import load_folder, recount_collisions
+from swarmpc.scenarios import builtin_scenario
+from swarmpc.simulation.deadlock import DeadlockResolver
+from swarmpc.simulation.loop import simulate
+from swarmpc.simulation.results import write_run
+
+
+def _check_swap(folder) -> dict:
+    summary, arrays = load_folder(folder)
+    states, goals = arrays["states"], arrays["goals"]
+    final = np.linalg.norm(states[-1, :, :2] - goals[:, :2], axis=1)
+    assert np.all(final <= 0.05 + 1e-9), final.max()
+    collisions, ratio = recount_collisions(states, arrays["delta"])
+    assert collisions == 0 and ratio >= 1.0
+    assert summary["all_reached"] and summary["collisions"] == 0
+    return summary
+
+
+@pytest.mark.parametrize("agents", [2, 4, 8])
+def test_circle_swap_unjams(agents, tmp_path):
+    scn = builtin_scenario("circle", agents=agents).with_updates(**{"solver.method": "centralized"})
+    summary = _check_swap(write_run(simulate(scn), tmp_path / f"circle-{agents}"))
+    # the head-on meeting does jam, and the summary says so
+    assert summary["deadlocks"] >= 1
+    assert summary["steps"] < scn.stop.max_steps
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("agents", [12, 16])
+def test_large_circle_swap_unjams(agents, tmp_path):
+    # circle-16 needs ~750 steps, more than the built-in 600
+    scn = builtin_scenario("circle", agents=agents).with_updates(
+        **{"solver.method": "centralized", "stop.max_steps": 1200}
+    )
+    _check_swap(write_run(simulate(scn), tmp_path / f"circle-{agents}"))
+
+
+@pytest.mark.slow
+def test_circle_swap_unjams_with_admm(tmp_path):
+    _check_swap(write_run(simulate(builtin_scenario("circle", agents=4)), tmp_path / "circle-4-admm"))
+
+
+def test_detector_needs_slow_far_and_crowded_for_patience_steps():
+    resolver = DeadlockResolver(2, 2)
+    goals = np.array([[2.0, 0.0, 0, 0], [-2.0, 0.0, 0, 0]])
+    jammed = np.array([[-0.2, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])
+    moving = jammed + np.array([0, 0, 0.5, 0])
+    for step in range(10):
+        assert np.array_equal(resolver.goals(step, moving, goals), goals)
+    assert resolver.events == []
+    patience = resolver.policy.patience
+    for step in range(10, 10 + patience - 1):
+        assert np.array_equal(resolver.goals(step, jammed, goals), goals)
+    detoured = resolver.goals(10 + patience - 1, jammed, goals)
+    assert len(resolver.events) == 2
+    # both turn right of their goal direction: agent 0 heads +x, so it steps to -y; agent 1 to +y
+    assert detoured[0, 1] < 0 < detoured[1, 1]
+    # an agent stuck alone far from its goal (a static trap) waits longer before it detours
+    lonely = DeadlockResolver(2, 2)
+    apart = np.array([[-1.9, 0.0, 0, 0], [1.9, 0.0, 0, 0]])
+    for step in range(lonely.policy.lonely_patience - 1):
+        lonely.goals(step, apart, goals)
+    assert lonely.events == []
+    lonely.goals(lonely.policy.lonely_patience - 1, apart, goals)
+    assert len(lonely.events) == 2
+
+
+def test_repeated_jams_get_desynchronised_detours():
+    policy = DeadlockResolver(2, 2).policy
+    goals = np.array([[2.0, 0.0, 0, 0], [-2.0, 0.0, 0, 0]])
+    jammed = np.array([[-0.2, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])
+    runs = []
+    for seed in (0, 1):
+        resolver = DeadlockResolver(2, 2, seed=seed)
+        holds = []
+        step = 0
+        while len(resolver.events) < 2 * (policy.escalate_after + 1):
+            before = len(resolver.events)
+            resolver.goals(step, jammed, goals)
+            if len(resolver.events) > before:
+                holds.append(resolver._detour_left.copy() + 1)  # one hold step is used at once
+            step += 1
+        runs.append(holds)
+        # the first detours are the plain rule, identical for both agents
+        for hold in holds[: policy.escalate_after]:
+            assert np.all(hold == policy.hold)
+        # from the escalation on, the two agents' holds differ and are longer
+        last = holds[-1]
+        assert last[0] != last[1] and np.all(last >= policy.hold)
+    assert not np.array_equal(runs[0][-1], runs[1][-1])  # seeded: another seed, other draws
+
+
+def test_slow_approach_next_to_a_parked_agent_is_not_a_jam():
+    resolver = DeadlockResolver(2, 2)
+    goals = np.array([[0.0, 0.0, 0, 0], [0.4, 0.0, 0, 0]])
+    for step in range(30):
+        # agent 0 crawls towards its goal at 0.03 m/s (3 mm per step); agent 1 is parked at its goal
+        x = -0.5 + 0.003 * step
+        states = np.array([[x, 0.0, 0.03, 0.0], [0.4, 0.0, 0.0, 0.0]])
+        assert np.array_equal(resolver.goals(step, states, goals), goals)
+    assert resolver.events == []
+    assert resolver._stalled.max() == 0
+    # the same crawl away from the goal (no progress) is a jam
+    stuck = DeadlockResolver(2, 2)
+    for step in range(30):
+        states = np.array([[-0.3 - 0.003 * step, 0.0, -0.03, 0.0], [0.4, 0.0, 0.0, 0.0]])
+        stuck.goals(step, states, goals)
+    assert stuck.events and stuck.events[0] == (stuck.policy.patience - 1, 0)

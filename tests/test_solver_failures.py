@@ -1,0 +1,170 @@
+"""Injected solver failures: the failing agent falls back safely, the run goes on, and the
+failures are counted in summary.json and in the per-step record (steps.npz)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pytest
+
+from conftest import load_folder, recount_collisions
+from swarmpc.config import scenario_from_dict
+from swarmpc.formulation.nlp import NLPSolution
+from swarmpc.simulation.loop import make_solver, simulate
+from swarmpc.simulation.results import write_run
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.solvers.executors import SerialExecutor
+
+# three agents whose straight paths cross near the origin within a few steps of each other
+CROSSING = {
+    "name": "crossing-3",
+    "dim": 2,
+    "delta": 0.25,
+    "workspace": {"lower": [-2.5, -2.5], "upper": [2.5, 2.5]},
+    "limits": {"accel": 2.0},
+    "weights": {"Q": 1.0, "R": 0.5, "Qf": 5.0},  # brisker than the paper's weights: a short test
+    "agents": [
+        {"start": [-1.6, 0.1], "goal": [1.6, 0.1]},
+        {"start": [0.1, -1.6], "goal": [0.1, 1.6]},
+        {"start": [1.4, 1.4], "goal": [-1.4, -1.4]},
+    ],
+    "solver": {"initial_guess": "straight"},
+    "stop": {"max_steps": 150, "goal_tolerance": 0.1},
+}
+# (MPC step, agent) pairs whose every local solve fails, including during the encounter
+FAILING = {(3, 0), (4, 0), (12, 0), (13, 0), (14, 0), (12, 1), (15, 2), (16, 2), (20, 1), (21, 0)}
+
+
+class _FailingNLP:
+    """Solves for real, then reports failure: the agent must not use the answer."""
+
+    def __init__(self, inner: Any) -> None:
+        self._inner = inner
+
+    def solve(self, *args: Any, **kwargs: Any) -> NLPSolution:
+        solution = self._inner.solve(*args, **kwargs)
+        return dataclasses.replace(solution, success=False, status="Infeasible_Problem_Detected")
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+class _FlakyAgent:
+    """A real LocalAgent whose solver fails on the chosen MPC steps."""
+
+    def __init__(self, inner: Any, failing: set[tuple[int, int]]) -> None:
+        self.inner = inner
+        self.failing = failing
+        self.step = -1
+
+    def solve(self, request: Any) -> Any:
+        if request.new_step:
+            self.step += 1
+        if (self.step, request.agent) not in self.failing:
+            return self.inner.solve(request)
+        real = self.inner.nlp
+        self.inner.nlp = _FailingNLP(real)
+        try:
+            return self.inner.solve(request)
+        finally:
+            self.inner.nlp = real
+
+
+class FlakyExecutor(SerialExecutor):
+    """The serial executor with fault injection on chosen (step, agent) pairs."""
+
+    def __init__(self, failing: set[tuple[int, int]]) -> None:
+        super().__init__()
+        self.failing = failing
+
+    def start(self, factory: Any, agent_ids: Sequence[int]) -> None:
+        self._agents = {i: _FlakyAgent(factory(i), self.failing) for i in agent_ids}
+
+
+def _check_folder(folder, expect_failures: bool) -> tuple[dict, dict]:
+    summary, arrays = load_folder(folder)
+    collisions, ratio = recount_collisions(arrays["states"], arrays["delta"])
+    assert collisions == 0 and ratio >= 1.0
+    assert summary["collisions"] == 0
+    with np.load(folder / "steps.npz") as steps:
+        failures, fallback = steps["failures"], steps["fallback"]
+    assert failures.shape[0] == summary["steps"] and fallback.shape == (summary["steps"], 3)
+    assert summary["solver_failures"] == int(failures.sum())
+    assert summary["fallback_agent_steps"] == int(fallback.sum())
+    if expect_failures:
+        assert summary["solver_failures"] > 0
+    return summary, {"failures": failures, "fallback": fallback, **arrays}
+
+
+def test_admm_local_failures_fall_back_and_the_run_goes_on(tmp_path):
+    scn = scenario_from_dict(CROSSING)
+    result = simulate(scn, executor=FlakyExecutor(set(FAILING)))
+    folder = write_run(result, tmp_path / "admm")
+    summary, arrays = _check_folder(folder, expect_failures=True)
+    assert summary["all_reached"]
+    # every injected (step, agent) is in the per-step record, as a failure and as a fallback
+    for step, agent in FAILING:
+        assert arrays["failures"][step] >= 1
+        assert arrays["fallback"][step, agent]
+    # the fallback's first input still respects the acceleration limit
+    assert np.abs(arrays["inputs"]).max() <= 2.0 + 1e-6
+
+
+class _FailingCalls:
+    """A compiled NLP that reports failure on chosen call numbers (0-based)."""
+
+    def __init__(self, inner: Any, failing: set[int]) -> None:
+        self._inner = inner
+        self.failing = failing
+        self.calls = 0
+
+    def solve(self, *args: Any, **kwargs: Any) -> NLPSolution:
+        solution = self._inner.solve(*args, **kwargs)
+        self.calls += 1
+        if self.calls - 1 in self.failing:
+            return dataclasses.replace(solution, success=False, status="Maximum_Iterations_Exceeded")
+        return solution
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+def test_centralized_failures_fall_back_the_same_way(tmp_path):
+    scn = scenario_from_dict({**CROSSING, "solver": {"method": "centralized", "initial_guess": "straight"}})
+    solver = make_solver(scn, OCPSettings.from_scenario(scn))
+    failing = {3, 4, 12, 13, 14, 15, 20}
+    solver.nlp = _FailingCalls(solver.nlp, failing)
+    result = simulate(scn, solver=solver)
+    folder = write_run(result, tmp_path / "central")
+    summary, arrays = _check_folder(folder, expect_failures=True)
+    assert summary["all_reached"]
+    assert summary["solver_failures"] == len(failing)
+    assert sorted(np.flatnonzero(arrays["failures"])) == sorted(failing)
+    assert arrays["fallback"][sorted(failing)].all()
+    assert np.abs(arrays["inputs"]).max() <= 2.0 + 1e-6
+
+
+@pytest.mark.parametrize("shifted", [True, False])
+def test_fallback_plan_obeys_dynamics_and_limits(shifted):
+    from swarmpc.model.dynamics import DoubleIntegrator
+    from swarmpc.solvers.base import braking_plan, fallback_plan
+
+    scn = scenario_from_dict(CROSSING)
+    settings = OCPSettings.from_scenario(scn)
+    model = DoubleIntegrator(2, scn.dt, "euler")
+    state = np.array([0.0, 0.0, 1.0, -0.5])
+    inputs = np.tile([[0.5, 0.2]], (scn.horizon, 1))
+    previous = model.rollout(state, inputs)
+    now = previous[1] + (np.array([0.01, -0.01, 0.02, 0.0]) if shifted else np.array([0.3, 0, 0, 0]))
+    states, plan_inputs = fallback_plan(now, previous, inputs, settings)
+    assert np.allclose(states[0], now)
+    assert np.allclose(model.rollout(now, plan_inputs), states)
+    assert np.abs(plan_inputs).max() <= 2.0 + 1e-12
+    if shifted:
+        assert np.allclose(plan_inputs[:-1], inputs[1:])
+    else:
+        assert np.allclose(states, braking_plan(now, settings)[0])
+        assert np.linalg.norm(states[-1, 2:]) < 1e-12
