@@ -12,6 +12,8 @@ deadlock counts. Writes ``stress.md`` (tables) and ``stress.json`` (every row) t
 
     nice -n 10 python benchmarks/stress.py --jobs 2            # the full suite (200 scenarios)
     python benchmarks/stress.py --count 20 --small --jobs 2     # the quick subset the tests run
+
+``--jobs`` defaults to the cores this process may use (its affinity mask).
 """
 
 from __future__ import annotations
@@ -228,10 +230,13 @@ def markdown(rows: list[dict[str, Any]], command: str, wall: float) -> str:
 
 
 def main() -> None:
+    from swarmpc.solvers.executors import available_cores
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--count", type=int, default=200, help="number of scenarios")
     parser.add_argument("--seed", type=int, default=0, help="suite seed")
-    parser.add_argument("--jobs", type=int, default=2, help="worker processes")
+    parser.add_argument("--jobs", type=int, default=available_cores(),
+                        help="worker processes [the cores this process may use]")
     parser.add_argument("--small", action="store_true", help="the quick subset (M 2-4, mostly 2D)")
     parser.add_argument("--save-runs", action="store_true", help="keep every run folder under --out")
     parser.add_argument("--out", type=Path, default=OUT, help="output folder")

@@ -37,9 +37,19 @@ def recount_collisions(states: np.ndarray, delta: np.ndarray) -> tuple[int, floa
     return count, worst
 
 
-def dynamics_error(states: np.ndarray, inputs: np.ndarray, dt: float) -> float:
-    """Largest deviation of the saved states from the Euler double integrator."""
+def dynamics_error(states: np.ndarray, inputs: np.ndarray, dt: float, method: str = "euler") -> float:
+    """Largest deviation of the saved states from the double integrator, written out by hand.
+
+    ``euler``: p' = p + dt v (the paper); ``zoh``: p' = p + dt v + dt^2/2 u (exact for an input
+    held over the step). Both: v' = v + dt u.
+    """
     d = inputs.shape[2]
     p, v = states[:-1, :, :d], states[:-1, :, d:]
-    predicted = np.concatenate([p + dt * v, v + dt * inputs], axis=2)
+    if method == "euler":
+        position = p + dt * v
+    elif method == "zoh":
+        position = p + dt * v + 0.5 * dt * dt * inputs
+    else:
+        raise ValueError(f"unknown discretisation {method!r}")
+    predicted = np.concatenate([position, v + dt * inputs], axis=2)
     return float(np.max(np.abs(predicted - states[1:])))

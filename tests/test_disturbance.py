@@ -74,3 +74,26 @@ def test_nominal_run_has_no_disturbances_array(tmp_path):
     folder = write_run(simulate(scenario_from_dict(TWO)), tmp_path / "nominal")
     summary, arrays = load_folder(folder)
     assert "disturbances" not in arrays and summary["disturbance"] is None
+
+
+def _min_separation(states: np.ndarray) -> float:
+    """Smallest inf-norm distance between the two agents over the run, from the saved states."""
+    return float(np.min(np.max(np.abs(states[:, 0, :2] - states[:, 1, :2]), axis=1)))
+
+
+def test_tightening_keeps_the_noisy_agents_further_apart():
+    # head-on: 0.1 m apart across the line of travel, so they must swerve to pass at >= delta
+    crossing = {**TWO, "agents": [{"start": [-1.2, 0.05], "goal": [1.2, 0.05]},
+                                  {"start": [1.2, -0.05], "goal": [-1.2, -0.05]}]}
+    runs = {}
+    for tightening in (0.0, 0.1):
+        scn = scenario_from_dict({**crossing, "disturbance": {**NOISE, "tightening": tightening}})
+        result = simulate(scn)
+        assert result.summary["all_reached"]  # they really passed each other
+        assert result.disturbances is not None and np.abs(result.disturbances).max() > 0
+        runs[tightening] = result
+    # the same seed: the same noise draws, only the planner's delta differs
+    assert np.array_equal(runs[0.0].disturbances[:5], runs[0.1].disturbances[:5])
+    loose, tight = _min_separation(runs[0.0].states), _min_separation(runs[0.1].states)
+    assert tight > loose + 0.05, (loose, tight)
+    assert tight > 0.2 + 0.1 - 0.02  # about the tightened delta, up to the noise

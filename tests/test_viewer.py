@@ -14,6 +14,7 @@ import math
 import os
 import re
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,6 +25,7 @@ import plotly.io
 import plotly.offline
 import pytest
 
+from conftest import load_folder, run_cli
 from swarmpc import viewer
 from swarmpc.config import scenario_from_dict, scenario_to_yaml
 
@@ -399,6 +401,130 @@ def test_single_agent_and_missing_scenario(tmp_path, runs):
     assert [tr.name for tr in _role(fig, "agent")] == ["agent 0"]
     assert _role(fig, "closest") == [] and not fig.layout.annotations
     assert viewer.write_view(folder).is_file()
+
+
+# ------------------------------------------------------------------------------ the view command
+_SCRIPT_SRC = re.compile(r"<script[^>]*\bsrc\s*=", re.I)
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory) -> Path:
+    """A real run folder, written by ``swarmpc run`` (15 ADMM steps of paper-2d)."""
+    folder = tmp_path_factory.mktemp("cli") / "paper"
+    done = run_cli("run", "paper-2d", "--max-steps", "15", "--out", str(folder), "--quiet")
+    assert done.returncode == 0, done.stderr
+    return folder
+
+
+def _assert_page_of_run(page: Path, folder: Path) -> None:
+    text = page.read_text(encoding="utf-8")
+    assert not _SCRIPT_SRC.search(text), "an external <script src=...>"
+    bundle = plotly.offline.get_plotlyjs()
+    assert bundle[:5000] in text and bundle[-5000:] in text, "plotly.js is not embedded"
+    assert "<title>swarmpc view · paper-2d</title>" in text
+    summary, arrays = load_folder(folder)
+    assert summary["steps"] == 15 and arrays["states"].shape[:2] == (16, 4)
+    for i in range(4):
+        assert f'"agent {i}"' in text
+    assert '"agent 4"' not in text
+
+
+def test_view_command_on_a_real_run(cli_run, tmp_path):
+    out = tmp_path / "pages" / "y.html"  # a parent that does not exist yet
+    done = run_cli("view", str(cli_run), "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines() == [str(out)]
+    assert out.is_file() and out.stat().st_size > 3_000_000
+    _assert_page_of_run(out, cli_run)
+    assert not (cli_run / "view.html").exists()  # --out replaces the default, it does not add to it
+    assert list(out.parent.glob(".*.tmp")) == []
+
+    done = run_cli("view", str(cli_run))  # default: RUN_DIR/view.html
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines() == [str(cli_run / "view.html")]
+    _assert_page_of_run(cli_run / "view.html", cli_run)
+
+
+@pytest.mark.parametrize("kind", ["empty folder", "missing folder", "a file", "summary only"])
+def test_view_command_rejects_a_non_run_folder(kind, cli_run, tmp_path):
+    target = tmp_path / "notarun"
+    if kind == "empty folder":
+        target.mkdir()
+    elif kind == "a file":
+        target = cli_run / "summary.json"
+    elif kind == "summary only":  # looks like a run folder but has no trajectory
+        target.mkdir()
+        shutil.copy(cli_run / "summary.json", target / "summary.json")
+        shutil.copy(cli_run / "scenario.yaml", target / "scenario.yaml")
+    out = tmp_path / "page.html"
+    done = run_cli("view", str(target), "--out", str(out))
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+    assert lines[0].startswith("swarmpc: error: ") and str(target) in lines[0]
+    assert "not a run folder" in lines[0]
+    assert done.stdout == "" and not out.exists()
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        pytest.param("garbage bytes", id="garbage"),
+        pytest.param("no states key", id="no-states"),
+        pytest.param("truncated zip", id="truncated-zip"),
+    ],
+)
+def test_view_command_on_a_broken_trajectory(kind, tmp_path):
+    """A trajectory.npz that is there but unusable is still one line and exit status 2."""
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    traj = folder / "trajectory.npz"
+    if kind == "garbage bytes":
+        traj.write_bytes(b"not an npz file\n")
+    elif kind == "no states key":
+        np.savez(traj, t=np.arange(3.0))
+    else:
+        traj.write_bytes(b"PK\x03\x04" + b"\0" * 10)
+    done = run_cli("view", str(folder))
+    assert done.returncode == 2, done.stderr[-400:]
+    assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+    assert not (folder / "view.html").exists()
+
+
+def _main_in_process(monkeypatch, *args: str) -> int:
+    """``swarmpc ARGS`` through the console entry point, in this process."""
+    from swarmpc import cli
+
+    monkeypatch.setattr(sys, "argv", ["swarmpc", *args])
+    with pytest.raises(SystemExit) as stop:
+        cli.main()
+    return stop.value.code
+
+
+def test_view_command_open_in_process(cli_run, tmp_path, monkeypatch, capsys):
+    opened: list[tuple[str, bool]] = []
+
+    def fake_open(url, *args, **kwargs):
+        opened.append((url, page.is_file()))  # the page must be complete before it is opened
+        return True
+
+    monkeypatch.setattr(viewer.webbrowser, "open", fake_open)
+    page = tmp_path / "no-open.html"
+    assert _main_in_process(monkeypatch, "view", str(cli_run), "--out", str(page)) == 0
+    assert opened == [] and page.is_file()  # without --open no browser is started
+    assert capsys.readouterr().out.strip() == str(page)
+
+    page = tmp_path / "open.html"
+    assert _main_in_process(monkeypatch, "view", str(cli_run), "--out", str(page), "--open") == 0
+    assert opened == [(page.resolve().as_uri(), True)]
+    captured = capsys.readouterr()
+    assert captured.out.strip() == str(page) and captured.err == ""
+    assert not _SCRIPT_SRC.search(page.read_text(encoding="utf-8"))
+
+    # a bad folder with --open: exit status 2 and no browser
+    assert _main_in_process(monkeypatch, "view", str(tmp_path / "nothing"), "--open") == 2
+    assert len(opened) == 1
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
 
 
 # ------------------------------------------------------------------------------ browser tests

@@ -1,7 +1,8 @@
 """The ``swarmpc`` command line: run scenarios, list them, plot and animate run folders.
 
 Bad input never produces a traceback: it is one line on stderr naming the field, exit status 2,
-and no output folder.
+and no output folder. Ctrl-C outside a run's simulation loop (which stops early and still writes
+an interrupted run folder) is one line ``swarmpc: interrupted``, exit status 130, nothing written.
 """
 
 from __future__ import annotations
@@ -42,10 +43,39 @@ class Guess(str, Enum):
     shifted = "shifted"
 
 
+class ExecutorName(str, Enum):
+    serial = "serial"
+    process = "process"
+    ray = "ray"
+
+
+INTERRUPTED = 130  # the shell's status for a process ended by SIGINT
+
+
+class Interrupted(Exception):
+    """Raised by a command that explains its own interruption; :func:`main` prints the line."""
+
+
 def fail(message: str) -> NoReturn:
     """One line on stderr, exit status 2."""
     typer.echo(f"swarmpc: error: {message}", err=True)
     raise typer.Exit(code=2)
+
+
+def interrupted(message: str = "swarmpc: interrupted") -> NoReturn:
+    """One line on stderr, exit status 130 (printed by :func:`main`)."""
+    raise Interrupted(message)
+
+
+def check_generator_params(seed: int | None, agents: int | None, dim: int | None) -> None:
+    """Reject the built-in generators' parameters that would crash or spin them before the
+    scenario's own validation sees the result (``random --seed -1``, ``random --dim 0``)."""
+    if seed is not None and seed < 0:
+        fail(f"seed: must be >= 0, got {seed}")
+    if agents is not None and agents < 1:
+        fail(f"agents: must be >= 1, got {agents}")
+    if dim is not None and dim not in (2, 3):
+        fail(f"dim: must be 2 or 3, got {dim}")
 
 
 def resolve_scenario(name_or_file: str, **params: Any) -> Scenario:
@@ -77,9 +107,21 @@ def run(
     admm_max_iter: Annotated[int | None, typer.Option(help="ADMM iteration cap per step")] = None,
     initial_guess: Annotated[Guess | None, typer.Option(help="initial-guess strategy")] = None,
     max_steps: Annotated[int | None, typer.Option(help="MPC steps at most")] = None,
+    executor: Annotated[
+        ExecutorName, typer.Option(help="where the ADMM agents' local solves run (admm only)")
+    ] = ExecutorName.serial,
+    workers: Annotated[
+        int | None,
+        typer.Option(min=1, help="worker processes / Ray actors [available cores; Ray: the cluster's CPUs]"),
+    ] = None,
+    address: Annotated[
+        str | None, typer.Option(help="Ray cluster to join (auto, ray://host:port) [start a local Ray]")
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar, no paragraph")] = False,
 ) -> None:
     """Run a scenario in closed loop and write summary.json, trajectory.npz and a figure."""
+    check_generator_params(seed, agents, dim)
+    check_executor_options(executor, workers, address)
     try:
         params: dict[str, Any] = {"agents": agents, "dim": dim, "seed": seed}
         scn = resolve_scenario(scenario, **params)
@@ -99,10 +141,79 @@ def run(
     except ScenarioError as err:
         fail(str(err))
     target = out or Path("results") / scn.name
-    _run_and_write(scn, target, quiet)
+    _run_and_write(scn, target, quiet, build_executor(scn, executor, workers, address))
 
 
-def _run_and_write(scn: Scenario, target: Path, quiet: bool) -> None:
+def check_executor_options(executor: ExecutorName, workers: int | None, address: str | None) -> None:
+    """``--workers`` and ``--address`` only mean something with the executors that use them."""
+    if workers is not None and executor is ExecutorName.serial:
+        fail("--workers: only with --executor process or ray")
+    if address is not None and executor is not ExecutorName.ray:
+        fail("--address: only with --executor ray")
+    if address is not None and not address.strip():
+        fail("--address: must not be empty (auto, ray://host:port)")
+
+
+def build_executor(
+    scn: Scenario, executor: ExecutorName, workers: int | None, address: str | None
+) -> _WorkersIgnoreCtrlC | None:
+    """The run's executor (``None``: the solver's own serial one). Only ADMM has local solves to
+    distribute, so a non-serial executor with the centralised solver is an error, not a no-op."""
+    from swarmpc.solvers.executors import make_executor
+
+    if executor is ExecutorName.serial:
+        return None
+    if scn.solver.method != "admm":
+        fail(f"--executor: {executor.value} only applies to solver.method admm, "
+             f"this run uses {scn.solver.method}")
+    if executor is ExecutorName.ray:
+        options: dict[str, Any] = {"address": address, "actors": workers}
+    else:
+        options = {"workers": workers}
+    try:
+        return _WorkersIgnoreCtrlC(make_executor(executor.value, **options), executor.value)
+    except ValueError as err:  # RayExecutor: Ray is not importable
+        if executor is ExecutorName.ray:
+            fail("--executor: ray needs Ray, which is not installed: pip install 'swarmpc[ray]'")
+        fail(f"--executor: {str(err).splitlines()[0]}")
+
+
+class _WorkersIgnoreCtrlC:
+    """An executor whose worker processes ignore SIGINT.
+
+    Ctrl-C in a terminal goes to the whole process group: a worker process would be interrupted
+    mid-solve (failed local solves, then a dead worker and a traceback) instead of the run's clean
+    stop (finish the step, write an interrupted run folder). An ignored signal stays ignored across
+    the workers' exec, so SIGINT is ignored while they start; a Ctrl-C during those seconds is lost.
+    Ray keeps SIGINT from its own processes itself, so its executor is left alone.
+    """
+
+    def __init__(self, inner: Any, name: str) -> None:
+        self.inner = inner
+        self.name = name
+
+    def start(self, factory: Any, agent_ids: Any) -> None:
+        if self.name != "process":
+            self.inner.start(factory, agent_ids)
+            return
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            self.inner.start(factory, agent_ids)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+    def solve(self, requests: Any) -> list[Any]:
+        return self.inner.solve(requests)
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def _run_and_write(
+    scn: Scenario, target: Path, quiet: bool, executor: _WorkersIgnoreCtrlC | None = None
+) -> None:
+    from dataclasses import replace
+
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -125,11 +236,17 @@ def _run_and_write(scn: Scenario, target: Path, quiet: bool) -> None:
                 TimeElapsedColumn(), console=console, transient=True,
             ) as bar:
                 task = bar.add_task(f"{scn.name} ({scn.solver.method})", total=scn.stop.max_steps)
-                result = simulate(scn, progress=lambda k, _n, _s: bar.update(task, completed=k), stop_flag=stop)
+                result = simulate(scn, progress=lambda k, _n, _s: bar.update(task, completed=k),
+                                  stop_flag=stop, executor=executor)
         else:
-            result = simulate(scn, stop_flag=stop)
+            result = simulate(scn, stop_flag=stop, executor=executor)
     finally:
+        if executor is not None:  # simulate closes it only when its loop ends normally (idempotent)
+            executor.close()
         signal.signal(signal.SIGINT, previous_handler)
+    if scn.solver.method == "admm":
+        name = executor.name if executor else "serial"
+        result = replace(result, summary={**result.summary, "executor": name})
 
     def figure(run: RunResult, folder: Path) -> None:
         plot_trajectories(load_run(folder), folder / "trajectory.png")
@@ -241,22 +358,27 @@ def reproduce(
         report = run_set(out, quick=quick, jobs=jobs, reuse=reuse, animations=animations,
                          log=lambda line: typer.echo(line, err=True))
     except KeyboardInterrupt:
-        typer.echo(f"swarmpc: interrupted; finished run folders are kept in {out}/runs "
-                   "(--reuse skips them next time)", err=True)
-        raise typer.Exit(code=130) from None
+        interrupted(f"swarmpc: interrupted; finished run folders are kept in {out}/runs "
+                    "(--reuse skips them next time)")
     except (ValueError, OSError) as err:
         fail(str(err).splitlines()[0])
     typer.echo(str(report))
 
 
 def main() -> None:
-    """Console entry point: usage errors also exit with status 2 and one line."""
+    """Console entry point: usage errors also exit with status 2 and one line; Ctrl-C (outside a
+    run's simulation loop) exits with status 130 and one line ``swarmpc: interrupted``."""
+    reported = False
     try:
+        # typer turns a KeyboardInterrupt inside a command into a silent exit status 130
         code = app(standalone_mode=False)
     except typer.Exit as exit_:
         code = exit_.exit_code
-    except typer.Abort:
-        code = 130
+    except (typer.Abort, KeyboardInterrupt):
+        code = INTERRUPTED
+    except Interrupted as err:
+        typer.echo(str(err), err=True)
+        code, reported = INTERRUPTED, True
     except Exception as err:  # the CLI library's usage errors carry format_message()
         format_message = getattr(err, "format_message", None)
         if format_message is None:
@@ -264,6 +386,8 @@ def main() -> None:
         line = format_message().splitlines()[0].replace("Value error, ", "")
         typer.echo(f"swarmpc: error: {line}", err=True)
         code = 2
+    if code == INTERRUPTED and not reported:
+        typer.echo("swarmpc: interrupted", err=True)
     sys.exit(code if isinstance(code, int) else 0)
 
 

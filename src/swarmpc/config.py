@@ -228,7 +228,7 @@ class Scenario(_Frozen):
     d_min: float = 0.05
     kappa: float = 1000.0
     discretization: Literal["euler", "zoh"] = "euler"
-    seed: int = 0
+    seed: int = Field(default=0, ge=0)
     weights: Weights = Weights()
     workspace: Workspace | None = None
     limits: Limits = Limits()

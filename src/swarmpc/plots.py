@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+import matplotlib
 import numpy as np
 from matplotlib import animation, colormaps
 from matplotlib.axes import Axes
@@ -811,6 +812,21 @@ def _time_format(times: np.ndarray) -> str:
     return f"t = {{:.{min(decimals, 4)}f}} s"
 
 
+def find_ffmpeg() -> str | None:
+    """The ffmpeg executable for MP4 output: matplotlib's configured one when it runs, else the
+    binary shipped by the ``imageio-ffmpeg`` wheel (a dependency, so a fresh install has one)."""
+    if animation.writers.is_available("ffmpeg"):
+        return str(matplotlib.rcParams["animation.ffmpeg_path"])
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        return None
+    try:
+        return str(imageio_ffmpeg.get_ffmpeg_exe())
+    except RuntimeError:  # the wheel has no binary for this platform
+        return None
+
+
 def animate(
     run: RunData,
     path: PathLike,
@@ -856,10 +872,11 @@ def animate(
         out = out.with_suffix(f".{fmt}")
     elif out.suffix.lower() != f".{fmt}":
         raise ValueError(f"{out}: suffix does not match fmt={fmt!r}")
-    if fmt == "mp4" and not animation.writers.is_available("ffmpeg"):
+    ffmpeg_path = find_ffmpeg() if fmt == "mp4" else None
+    if fmt == "mp4" and ffmpeg_path is None:
         raise AnimationWriterError(
             "mp4 animations need ffmpeg, which was not found: install ffmpeg "
-            "(e.g. `apt-get install ffmpeg` or `conda install ffmpeg`) or write a GIF instead (--format gif, fmt='gif')"
+            "(e.g. `pip install imageio-ffmpeg` or `apt-get install ffmpeg`) or write a GIF instead (--format gif, fmt='gif')"
         )
     frames = frame_indices(run.num_steps + 1, max_frames)
     times = run.t[frames]
@@ -895,7 +912,8 @@ def animate(
     else:
         writer = animation.FFMpegWriter(fps=fps, codec="h264", extra_args=["-pix_fmt", "yuv420p"])
     out.parent.mkdir(parents=True, exist_ok=True)
-    with writer.saving(fig, str(out), dpi=ANIMATION_DPI):
+    rc = {"animation.ffmpeg_path": ffmpeg_path} if ffmpeg_path else {}
+    with matplotlib.rc_context(rc), writer.saving(fig, str(out), dpi=ANIMATION_DPI):
         for k, stamp in zip(frames, times):
             first = max(0, int(k) - trail)
             for update in updates:

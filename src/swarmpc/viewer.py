@@ -41,6 +41,7 @@ import json
 import math
 import os
 import webbrowser
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -111,15 +112,20 @@ def load_run(run_dir: str | Path) -> Run:
     traj_file = folder / "trajectory.npz"
     if not traj_file.is_file():
         raise FileNotFoundError(f"{folder}: no trajectory.npz (is this a run folder?)")
-    with np.load(traj_file, allow_pickle=False) as data:
-        states = np.asarray(data["states"], float)
-        if states.ndim != 3 or states.shape[2] % 2:
-            raise ValueError(f"{traj_file}: states must be (T+1, M, 2d), got {states.shape}")
-        dim = states.shape[2] // 2
-        dt = float(data["dt"]) if "dt" in data else 0.1
-        t = np.asarray(data["t"], float) if "t" in data else dt * np.arange(states.shape[0])
-        goals = np.asarray(data["goals"], float) if "goals" in data else None
-        delta_raw = np.asarray(data["delta"], float) if "delta" in data else None
+    try:
+        with np.load(traj_file, allow_pickle=False) as data:
+            if "states" not in data:
+                raise ValueError(f"{traj_file}: no 'states' array (not a swarmpc trajectory)")
+            states = np.asarray(data["states"], float)
+            if states.ndim != 3 or states.shape[2] % 2:
+                raise ValueError(f"{traj_file}: states must be (T+1, M, 2d), got {states.shape}")
+            dim = states.shape[2] // 2
+            dt = float(data["dt"]) if "dt" in data else 0.1
+            t = np.asarray(data["t"], float) if "t" in data else dt * np.arange(states.shape[0])
+            goals = np.asarray(data["goals"], float) if "goals" in data else None
+            delta_raw = np.asarray(data["delta"], float) if "delta" in data else None
+    except (zipfile.BadZipFile, EOFError) as err:
+        raise ValueError(f"{traj_file}: unreadable ({err.__class__.__name__}: {err})") from None
 
     summary: dict[str, Any] = {}
     summary_file = folder / "summary.json"

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -44,7 +44,8 @@ class ADMMConfig:
     owner_weight: float = 5.0
     repair: bool = True
     coupling_margin: float | None = 0.5
-    stall_window: int | None = 20
+    stall_window: int | None = 5
+    stall_rho_factor: float | None = 2.0
     rho_bounds: tuple[float, float] = (1e-2, 1e3)
     seed_duals: bool = True
 
@@ -170,6 +171,10 @@ def trajectory_through(state: np.ndarray, z: np.ndarray, s: OCPSettings) -> np.n
     return np.hstack([positions, velocities])
 
 
+KEPT_PLAN = "kept_verified_current_plan"
+"""Status of a repair whose solves failed but whose current plan satisfies every constraint."""
+
+
 class LocalAgent:
     """One agent's private side of ADMM: its solver, multipliers and last solution."""
 
@@ -205,10 +210,13 @@ class LocalAgent:
                 previous = last.copies[self._last_neighbours.index(j)]
                 self._gamma[j] = self._gamma.get(j, 0.0) + rho * (previous - request.z_neighbours[slot])
 
-    def _initial_point(self, request: LocalRequest, seed: bool = True) -> dict[str, np.ndarray]:
-        """Primal start from the guess; certificates seeded when ``seed`` and ``seed_duals``."""
+    def _initial_point(
+        self, request: LocalRequest, seed: bool = True, always_seed: bool = False
+    ) -> dict[str, np.ndarray]:
+        """Primal start from the guess; certificates seeded when ``seed`` and ``seed_duals``
+        (or ``always_seed``)."""
         s, first = self.settings, self.settings.first_constrained_step
-        seed = seed and self.seed_duals
+        seed = seed and (self.seed_duals or always_seed)
         point = agent_guess_blocks("", request.guess, s, seed)
         own = request.guess[first:, : s.dim]
         for slot, z in enumerate(request.z_neighbours):
@@ -236,6 +244,30 @@ class LocalAgent:
             pinned.update({f"Uc{slot}": inputs[slot].T for slot in range(len(inputs))})
             return pinned
         return {f"C{slot}": z for slot, z in enumerate(request.z_neighbours)}
+
+    def _repair_from_own_plan(
+        self, request: LocalRequest, params: dict[str, Any], pinned: dict[str, np.ndarray],
+        failed: NLPSolution,
+    ) -> NLPSolution:
+        """A failed repair solve, retried from the agent's current plan with its certificates
+        seeded against the pinned plans (IPOPT's restoration phase can report a nearly feasible
+        start as infeasible). If that fails too, the current plan itself is kept when it
+        verifiably satisfies every constraint against the pinned plans; otherwise ``failed``."""
+        assert self._plan is not None
+        n = len(request.neighbours)
+        candidate = self._initial_point(replace(request, guess=self._plan[0]), always_seed=True)
+        retry = self.nlp.solve(params, candidate, fixed=pinned, copies=n)
+        if retry.success:
+            return retry
+        nlp = self.nlp.solver(self.nlp.slots_for(n))
+        x_vec = nlp.x_layout.pack({**candidate, **pinned})
+        if nlp.constraint_violation(x_vec, params) > 1e-7:
+            return failed
+        return NLPSolution(
+            x=nlp.x_layout.unpack(x_vec), x_vec=x_vec, lam_x=np.zeros_like(x_vec),
+            lam_g=np.zeros_like(nlp.lbg), cost=retry.cost, success=True, status=KEPT_PLAN,
+            iterations=0, solve_time=failed.solve_time + retry.solve_time,
+        )
 
     def solve(self, request: LocalRequest) -> LocalResult:
         """Multiplier update for the new consensus, then the local NLP."""
@@ -284,8 +316,11 @@ class LocalAgent:
                 solution = self.nlp.solve(params, point, fixed=pinned, copies=n)
         else:
             solution = self.nlp.solve(params, point, fixed=pinned, copies=n)
+        if pinned is not None and not solution.success and self._plan is not None:
+            solution = self._repair_from_own_plan(request, params, pinned, solution)
         first = s.first_constrained_step
-        fallback = False
+        kept = solution.status == KEPT_PLAN  # no solve succeeded; the current plan is verified
+        fallback = kept and self._last_sent is not None and self._last_sent.fallback
         slack: list[float] = []
         if solution.success:
             self._last = solution
@@ -315,7 +350,7 @@ class LocalAgent:
             copies=copies,
             states=states,
             inputs=inputs,
-            success=solution.success,
+            success=solution.success and not kept,
             fallback=fallback,
             solve_time=solution.solve_time,
             max_slack=float(max(slack)) if slack else 0.0,
@@ -324,6 +359,100 @@ class LocalAgent:
         self._last_sent = result
         self._last_neighbours = request.neighbours
         return result
+
+
+REPAIR_ROUNDS = 3
+"""Most repair passes in one MPC step (the first, plus re-runs after coupling pairs whose repaired
+plans conflict)."""
+
+
+def reach_radius(states: np.ndarray, settings: OCPSettings) -> np.ndarray:
+    """Largest inf-norm displacement each agent's plan can make from ``states`` within the horizon.
+
+    Parameters
+    ----------
+    states : ndarray, shape (M, 2d)
+        Current (measured) states [p, v], the states the plans start from.
+    settings : OCPSettings
+        Horizon, time step and the limits the plans obey.
+
+    Returns
+    -------
+    ndarray, shape (M,)
+        Per agent, an upper bound on max_k ||p_k - p_0||_inf over the horizon T = horizon * dt
+        (``inf`` when the plans are not limited).
+
+    Notes
+    -----
+    Per axis, with an acceleration limit a: ``|v_axis| T + a T^2 / 2``, the continuous-time bound,
+    which both discretisations stay within (Euler moves dt^2 a k(k-1)/2 in k steps, the zero-order
+    hold exactly a (k dt)^2 / 2); every plan the solver emits obeys it: local solutions, the
+    braking plan and the replayed previous plan of a fallback. With a speed limit s (a bound on the
+    norm, so on every axis, for every planned velocity after the measured one):
+    ``T max(s, |v_axis|)``, which is ``s T`` whenever the measured velocity is within the limit
+    and also covers a measured velocity above it (the first step moves with it) and the braking
+    plan (whose speed never grows). With both limits, the smaller bound; with neither, ``inf``.
+    Not covered by the speed bound: a fallback that replays the previous plan from a state off
+    that plan (its velocities shift by the offset); :meth:`ADMMSolver.plan` therefore also checks
+    every pair of an agent whose plan moved farther than this bound.
+    """
+    states = np.asarray(states, float)
+    d = settings.dim
+    horizon_time = settings.horizon * settings.dt
+    velocity = np.abs(states[:, d : 2 * d])
+    reach = np.full(velocity.shape, np.inf)
+    if settings.accel is not None:
+        reach = velocity * horizon_time + 0.5 * np.asarray(settings.accel, float) * horizon_time**2
+    if settings.speed is not None:
+        reach = np.minimum(reach, horizon_time * np.maximum(velocity, settings.speed))
+    return reach.max(axis=1)
+
+
+def reach_candidates(states: np.ndarray, settings: OCPSettings, delta: np.ndarray) -> np.ndarray:
+    """Pairs of agents whose plans can come within delta + d_min of each other during the horizon.
+
+    Parameters
+    ----------
+    states : ndarray, shape (M, 2d)
+        Current (measured) states [p, v].
+    settings : OCPSettings
+        Horizon, time step, ``d_min`` and the limits (see :func:`reach_radius`).
+    delta : array_like
+        Half-size of the box each agent keeps the others out of (scalar or per axis).
+
+    Returns
+    -------
+    ndarray of bool, shape (M, M)
+        Symmetric; ``[i, j]`` is True when the current inf-norm gap between agents i and j is
+        below ``max(delta) + d_min + reach_i + reach_j``; the diagonal is False. Without limits
+        every pair (i != j) is a candidate.
+
+    Notes
+    -----
+    Why: by the triangle inequality the gap at any step of the horizon is at least the current gap
+    minus both agents' displacements, so a pair that is not a candidate stays at least
+    ``max(delta) + d_min`` apart (inf-norm) in any plans the two can have. On that axis the offset
+    is at least delta_axis + d_min, so the OBCA pair constraint holds without being imposed: such a
+    pair needs no copies, no certificate and no conflict check. Recomputed every MPC step.
+    """
+    states = np.asarray(states, float)
+    d = settings.dim
+    reach = reach_radius(states, settings)
+    positions = states[:, :d]
+    gaps = np.max(np.abs(positions[:, None, :] - positions[None, :, :]), axis=2)
+    limit = float(np.max(delta)) + settings.d_min
+    candidates = gaps < limit + reach[:, None] + reach[None, :]
+    np.fill_diagonal(candidates, False)
+    return candidates
+
+
+def couple(neighbours: list[tuple[int, ...]], pairs: list[tuple[int, int]]) -> list[tuple[int, ...]]:
+    """``neighbours`` with every pair in ``pairs`` coupled (both ways)."""
+    coupled = [set(n) for n in neighbours]
+    for i, j in pairs:
+        coupled[i].add(j)
+        coupled[j].add(i)
+    return [tuple(sorted(n)) for n in coupled]
 
 
 class ADMMSolver:
@@ -350,13 +479,15 @@ class ADMMSolver:
     def close(self) -> None:
         self.executor.close()
 
-    def neighbours(self, guess: np.ndarray) -> list[tuple[int, ...]]:
+    def neighbours(self, guess: np.ndarray, candidates: np.ndarray | None = None) -> list[tuple[int, ...]]:
         """Agents each agent couples with this step (symmetric).
 
         With ``coupling_margin`` None, every other agent (the paper's all-to-all copies). Otherwise
-        only agents whose guessed trajectories come within delta + d_min + margin (inf-norm) of
-        each other at some constrained step; pairs left out are checked after convergence and
-        coupled on demand if their plans conflict (see :meth:`plan`).
+        only reach ``candidates`` (:func:`reach_candidates`; None: every pair) whose guessed
+        trajectories come within delta + d_min + margin (inf-norm) of each other at some
+        constrained step; candidate pairs left out are checked after convergence and coupled on
+        demand if their plans conflict (see :meth:`plan`). A pair that is not a candidate cannot
+        come within delta + d_min during the horizon, so it needs no coupling.
         """
         M = self.num_agents
         if self.config.coupling_margin is None:
@@ -365,21 +496,43 @@ class ADMMSolver:
         reach = float(np.max(self.delta)) + self.settings.d_min + self.config.coupling_margin
         positions = guess[:, first:, :d]
         gaps = np.max(np.abs(positions[:, None] - positions[None, :]), axis=3).min(axis=2)
-        return [tuple(j for j in range(M) if j != i and gaps[i, j] < reach) for i in range(M)]
+        coupled = gaps < reach
+        if candidates is not None:
+            coupled &= candidates
+        np.fill_diagonal(coupled, False)
+        return [tuple(np.flatnonzero(row).tolist()) for row in coupled]
 
-    def conflicts(self, results: list[LocalResult], neighbours: list[tuple[int, ...]]) -> list[tuple[int, int]]:
-        """Uncoupled pairs whose own plans come closer than the coupling would allow."""
-        d = self.settings.dim
+    def conflicts(
+        self, results: list[LocalResult], neighbours: list[tuple[int, ...]], candidates: np.ndarray | None = None
+    ) -> list[tuple[int, int]]:
+        """Uncoupled candidate pairs (i < j) whose own plans come closer than the coupling would allow
+        (inf-norm below delta + d_min at some constrained step); ``candidates`` None: every pair."""
+        M = self.num_agents
         limit = float(np.max(self.delta)) + self.settings.d_min
-        pairs = []
-        for i in range(self.num_agents):
-            for j in range(i + 1, self.num_agents):
-                if j in neighbours[i]:
-                    continue
-                gap = np.max(np.abs(results[i].own - results[j].own), axis=0).min()
-                if gap < limit:
-                    pairs.append((i, j))
-        return pairs
+        examine = np.triu(np.ones((M, M), bool) if candidates is None else candidates, k=1)
+        for i, n in enumerate(neighbours):
+            examine[i, list(n)] = False
+        first, second = np.nonzero(examine)
+        if first.size == 0:
+            return []
+        own = np.array([r.own for r in results])  # (M, d, K)
+        gaps = np.max(np.abs(own[first] - own[second]), axis=1).min(axis=1)
+        hit = gaps < limit
+        return list(zip(first[hit].tolist(), second[hit].tolist()))
+
+    def _checked_pairs(self, candidates: np.ndarray, states: np.ndarray, results: list[LocalResult]) -> np.ndarray:
+        """``candidates`` plus every pair of an agent whose plan moved farther than its reach bound
+        (a replayed fallback under a speed limit, or solver tolerance), so the conflict check never
+        relies on a bound a plan broke."""
+        d = self.settings.dim
+        own = np.array([r.own for r in results])  # (M, d, K)
+        moved = np.max(np.abs(own - np.asarray(states)[:, :d, None]), axis=(1, 2))
+        escaped = moved > reach_radius(states, self.settings)
+        if not escaped.any():
+            return candidates
+        checked = candidates | escaped[:, None] | escaped[None, :]
+        np.fill_diagonal(checked, False)
+        return checked
 
     def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep:
         """One MPC step: ADMM iterations until consensus, then every agent's own plan."""
@@ -390,7 +543,8 @@ class ADMMSolver:
             z = np.transpose(guess[:, first:, : s.dim], (0, 2, 1)).copy()
         else:
             z = np.concatenate([self._z[:, :, 1:], self._z[:, :, -1:]], axis=2)
-        neighbours = self.neighbours(guess)
+        candidates = reach_candidates(states, s, self.delta)
+        neighbours = self.neighbours(guess, candidates)
         rho = rho_previous = self._rho
         primal: list[float] = []
         dual: list[float] = []
@@ -399,6 +553,7 @@ class ADMMSolver:
         failures = 0
         results: list[LocalResult] = []
         converged = False
+        window_start = 0
         for iteration in range(cfg.max_iter):
             requests = [
                 self._request(i, states, goals, guess, neighbours[i], z, rho, rho_previous, iteration == 0)
@@ -415,28 +570,40 @@ class ADMMSolver:
             z = z_new
             converged = r_norm <= cfg.tol and s_norm <= cfg.tol
             if converged:
-                missing = self.conflicts(results, neighbours)
+                missing = self.conflicts(results, neighbours, self._checked_pairs(candidates, states, results))
                 if not missing:
                     break
                 converged = False
-                coupled = [set(n) for n in neighbours]
-                for i, j in missing:
-                    coupled[i].add(j)
-                    coupled[j].add(i)
-                neighbours = [tuple(sorted(n)) for n in coupled]
-            if self._stalled(primal):
-                break
+                neighbours = couple(neighbours, missing)
             rho_previous = rho
+            if self._stalled(primal[window_start:]):
+                if cfg.stall_rho_factor is None or rho >= cfg.rho_bounds[1]:
+                    break
+                # a stalled nonconvex ADMM often settles once the penalty is stiffer
+                rho = min(rho * cfg.stall_rho_factor, cfg.rho_bounds[1])
+                window_start = len(primal)
             if cfg.adaptive_rho:
                 if r_norm > 10 * s_norm:
                     rho = min(rho * 2, cfg.rho_bounds[1])
                 elif s_norm > 10 * r_norm:
                     rho = max(rho / 2, cfg.rho_bounds[0])
         if not converged and cfg.repair:
-            results = self._repair(states, goals, guess, neighbours, z, rho, results)
-            agent_times += [r.solve_time for r in results]
-            failures += sum(not r.success for r in results)
-        self._z = z
+            for round_ in range(REPAIR_ROUNDS):
+                previous = results
+                results = self._repair(states, goals, guess, neighbours, z, rho, results)
+                # later passes count only the agents they re-solved
+                solved = [round_ == 0 or r is not old for r, old in zip(results, previous)]
+                agent_times += [r.solve_time if new else 0.0 for r, new in zip(results, solved)]
+                failures += sum(new and not r.success for r, new in zip(results, solved))
+                # the repair only re-plans against neighbours: couple any candidate pair whose
+                # repaired plans now conflict and repair again
+                missing = self.conflicts(results, neighbours, self._checked_pairs(candidates, states, results))
+                if not missing or round_ == REPAIR_ROUNDS - 1:
+                    break
+                neighbours = couple(neighbours, missing)
+        # next step's consensus starts from the plans actually applied: after a repair pass the
+        # average z of a non-converged iterate is not what any agent flies
+        self._z = np.array([r.own for r in results])
         self._rho = rho if cfg.adaptive_rho else cfg.rho
         plans_x = np.array([r.states for r in results])
         plans_u = np.array([r.inputs for r in results])
@@ -499,10 +666,14 @@ class ADMMSolver:
         """Consensus repair when ADMM stops at the cap: agents re-plan one after another against
         the others' current own plans (held fixed). Each agent respects the final plans of those
         before it and the plans those after it will respect, so every pair ends up feasible
-        whenever the solves succeed."""
+        whenever the solves succeed. An agent whose solve fails flies its fallback plan, which
+        the agents after it respect; it re-plans once more at the end, against everyone's final
+        plans, since a plan that respects all of them keeps every pair it is in feasible."""
         first = self.settings.first_constrained_step
         repaired = list(results)
-        for i in range(self.num_agents):
+        order = list(range(self.num_agents))[::-1]  # a tie-break; see docs/admm.md
+        retried: set[int] = set()
+        for i in order:
             others = list(neighbours[i])
             if not others:
                 continue
@@ -514,6 +685,9 @@ class ADMMSolver:
             own_z[i] = repaired[i].states[first:, : self.settings.dim].T
             request = self._request(i, states, goals, guess, neighbours[i], own_z, rho, rho, False, plans)
             repaired[i] = self.executor.solve([request])[0]
+            if not repaired[i].success and i not in retried:
+                retried.add(i)
+                order.append(i)
         return repaired
 
     def _average(
