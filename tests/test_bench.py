@@ -88,3 +88,34 @@ class _InlinePool:
         future: Future = Future()
         future.set_result(fn(*args))
         return future
+
+
+def test_bench_command_writes_its_table(tmp_path):
+    from conftest import run_cli
+
+    out = tmp_path / "bench"
+    done = run_cli("bench", "--families", "circle", "--sizes", "2", "--max-steps", "5", "--jobs", "1",
+                   "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == str(out / "bench.md")
+    table = (out / "bench.md").read_text()
+    assert "| circle | 2 | 1 |" in table
+    data = json.loads((out / "bench.json").read_text())
+    assert {r["case"]["method"] for r in data["runs"]} == {"admm", "centralized"}
+    assert all(r["steps"] == 5 and r["collisions"] == 0 for r in data["runs"])
+
+
+@pytest.mark.parametrize(("args", "field"), [
+    (["--families", "blob"], "--families"),
+    (["--sizes", "4,x"], "--sizes"),
+    (["--sizes", "0"], "--sizes"),
+    (["--seeds", "0"], "--seeds"),
+])
+def test_bench_command_rejects_bad_options(tmp_path, args, field):
+    from conftest import run_cli
+
+    done = run_cli("bench", *args, "--out", str(tmp_path / "b"))
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and field in lines[0] and "Traceback" not in done.stderr
+    assert not (tmp_path / "b").exists()

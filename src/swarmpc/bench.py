@@ -80,7 +80,9 @@ class CaseOutcome:
 def run_case(case: BenchCase) -> CaseOutcome:
     """Run one case in closed loop, stopping cleanly when its wall-time budget is spent."""
     scn = case.scenario()
-    options = {"workers": case.workers} if case.executor == "process" and case.workers else {}
+    options: dict[str, Any] = {}
+    if case.workers and case.executor in ("process", "ray"):
+        options = {"workers" if case.executor == "process" else "actors": case.workers}
     executor = make_executor(case.executor, **options) if case.method == "admm" else None
     stop = StopFlag()
     timer = threading.Timer(case.budget_s, lambda: setattr(stop, "requested", True))
@@ -117,16 +119,16 @@ def run_case(case: BenchCase) -> CaseOutcome:
 
 def plan_cases(
     families: Iterable[str], sizes: Iterable[int], seeds: int, executor: str, workers: int | None,
-    budget_s: float, central_max_agents: int,
+    budget_s: float, central_max_agents: int, max_steps: int | None = None,
 ) -> list[BenchCase]:
     """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed)."""
     cases = []
     for family in families:
         for m in sizes:
             for seed in range(seeds if family == "random" else 1):
-                cases.append(BenchCase(family, m, seed, "admm", executor, workers, budget_s))
+                cases.append(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps))
                 if m <= central_max_agents:
-                    cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s))
+                    cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps))
     return cases
 
 
@@ -205,6 +207,7 @@ def run_bench(
     workers: int | None = None,
     budget_s: float = 600.0,
     central_max_agents: int = 16,
+    max_steps: int | None = None,
     log: Callable[[str], None] = lambda _line: None,
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
@@ -218,7 +221,7 @@ def run_bench(
     sizes = tuple(sizes or (QUICK_SIZES if quick else FULL_SIZES))
     seeds = seeds or (1 if quick else 5)
     cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
-                       min(central_max_agents, 4) if quick else central_max_agents)
+                       min(central_max_agents, 4) if quick else central_max_agents, max_steps)
     jobs = jobs or (1 if executor != "serial" else available_cores())
     outcomes: list[CaseOutcome] = []
     started = time.perf_counter()

@@ -365,6 +365,41 @@ def reproduce(
     typer.echo(str(report))
 
 
+@app.command()
+def bench(
+    out: Annotated[Path, typer.Option(help="folder for bench.md and bench.json")] = Path("results/bench"),
+    quick: Annotated[bool, typer.Option("--quick", help="M in {4, 8}, one seed: a smoke run")] = False,
+    families: Annotated[str, typer.Option(help="comma-separated: circle, sphere, random")] = "circle,sphere,random",
+    sizes: Annotated[str | None, typer.Option(help="comma-separated swarm sizes [4,8,16,32,64]")] = None,
+    seeds: Annotated[int | None, typer.Option(min=1, help="seeds of the random family [5; quick 1]")] = None,
+    jobs: Annotated[int | None, typer.Option(min=1, help="cases side by side [cores; 1 with a parallel executor]")] = None,
+    executor: Annotated[ExecutorName, typer.Option(help="where each ADMM case's local solves run")] = ExecutorName.serial,
+    workers: Annotated[int | None, typer.Option(min=1, help="process-pool size / Ray actors")] = None,
+    budget: Annotated[float, typer.Option(min=1.0, help="wall-time budget per case [s]")] = 600.0,
+    central_max_agents: Annotated[int, typer.Option(min=0, help="largest M also run centralised")] = 16,
+    max_steps: Annotated[int | None, typer.Option(min=1, help="override every case's step cap")] = None,
+) -> None:
+    """The scaling benchmark: swarms of growing size; writes OUT/bench.md and OUT/bench.json."""
+    from swarmpc.bench import run_bench
+
+    try:
+        size_list = [int(v) for v in sizes.split(",")] if sizes else None
+    except ValueError:
+        fail(f"--sizes: expected comma-separated integers, got {sizes!r}")
+    if size_list is not None and any(m < 1 for m in size_list):
+        fail(f"--sizes: every size must be >= 1, got {sizes!r}")
+    try:
+        markdown, _ = run_bench(
+            out, quick=quick, families=[f.strip() for f in families.split(",") if f.strip()],
+            sizes=size_list, seeds=seeds, jobs=jobs, executor=executor.value, workers=workers,
+            budget_s=budget, central_max_agents=central_max_agents, max_steps=max_steps,
+            log=lambda line: typer.echo(line, err=True),
+        )
+    except ValueError as err:
+        fail(f"--{str(err).splitlines()[0]}")
+    typer.echo(str(markdown))
+
+
 def main() -> None:
     """Console entry point: usage errors also exit with status 2 and one line; Ctrl-C (outside a
     run's simulation loop) exits with status 130 and one line ``swarmpc: interrupted``."""
