@@ -103,9 +103,13 @@ def run_in_process(*args: str) -> tuple[int, str]:
 
 
 RUN = typer.main.get_command(app).commands["run"]
-# every value-taking option of `swarmpc run` but --out, with the type its help shows
+# where the agents run: starting process pools or Ray per example is too slow for a fuzz, and their
+# rules (--workers, --address only with some executors) are tested in tests/test_cli_executor.py
+EXECUTOR_OPTIONS = {"--executor", "--workers", "--address"}
+# every value-taking option of `swarmpc run` but --out and those, with the type its help shows
 OPTIONS = {p.opts[0]: p for p in RUN.params
-           if p.param_type_name == "option" and not p.is_flag and p.opts[0] != "--out"}
+           if p.param_type_name == "option" and not p.is_flag and p.opts[0] != "--out"
+           and p.opts[0] not in EXECUTOR_OPTIONS}
 # the scenario field(s) a rejection may name for each option (besides the option itself);
 # a --delta too large for the scenario is reported at the agent whose start it overlaps
 FIELD_OF = {"--seed": ("seed",), "--agents": ("agents",), "--dim": ("dim",), "--delta": ("delta", "agents"),
