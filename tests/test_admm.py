@@ -38,7 +38,10 @@ def test_one_step_matches_centralised(name):
     goals = scn.goal_states()
     guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
     central = CentralizedSolver(s, scn.num_agents, scn.delta_vector).plan(states, goals, guess)
-    admm = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(max_iter=200)).plan(states, goals, guess)
+    # the paper's stopping rule (every block, both residuals; the default): consensus on the
+    # global optimum
+    config = ADMMConfig(max_iter=200, engage_margin=None)
+    admm = ADMMSolver(s, scn.num_agents, scn.delta_vector, config).plan(states, goals, guess)
     assert central.failures == 0 and admm.failures == 0 and not admm.repaired
     assert admm.primal_residuals[-1] <= 1e-3 and admm.dual_residuals[-1] <= 1e-3
     # every constraint, recomputed from the agents' own plans
@@ -55,6 +58,52 @@ def test_one_step_matches_centralised(name):
     central_cost = plan_cost(central, goals, s)
     assert plan_cost(admm, goals, s) == pytest.approx(central_cost, rel=0.01)
     assert admm.max_slack == 0.0
+
+
+@pytest.mark.parametrize("name", ["paper-2d", "paper-3d"])
+def test_engaged_stop_applies_mutually_feasible_plans(name):
+    """The engaged stop (residuals over engaged pairs only, plus a feasibility check of the own
+    plans) ends no later than the paper's rule and still flies plans that keep every pair apart."""
+    scn, states = approach_state(name)
+    s = OCPSettings.from_scenario(scn)
+    goals = scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+    central = CentralizedSolver(s, scn.num_agents, scn.delta_vector).plan(states, goals, guess)
+    paper = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(max_iter=200, engage_margin=None))
+    default = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(max_iter=200, engage_margin=0.1))
+    strict, quick = paper.plan(states, goals, guess), default.plan(states, goals, guess)
+    assert not quick.repaired and quick.failures == 0
+    assert quick.admm_iterations <= strict.admm_iterations
+    d, first = s.dim, s.first_constrained_step
+    for i in range(scn.num_agents):
+        for j in range(i + 1, scn.num_agents):
+            for k in range(first, s.horizon + 1):
+                gap = point_box_distance(quick.states[i, k, :d] - quick.states[j, k, :d], scn.delta_vector)
+                assert gap >= 0.5 * s.d_min
+    assert plan_cost(quick, goals, s) <= 1.15 * plan_cost(central, goals, s)
+
+
+def test_engaged_blocks_mark_only_binding_pairs():
+    scn = builtin_scenario("paper-2d")
+    s = OCPSettings.from_scenario(scn)
+    solver = ADMMSolver(s, 3, scn.delta_vector)
+    K = s.num_constrained
+
+    def result(agent, position, copies):
+        own = np.repeat(np.asarray(position, float)[:, None], K, axis=1)
+        stacked = np.array([np.repeat(np.asarray(c, float)[:, None], K, axis=1) for c in copies])
+        return type("R", (), {"agent": agent, "own": own, "copies": stacked})()
+
+    # 0 and 1 sit 0.4 m apart on x (0.1 m from the 0.3 m box: within d_min + 0.1), 2 is 2 m away
+    results = [result(0, [0.0, 0.0], [[0.4, 0.0], [2.0, 0.0]]), result(1, [0.4, 0.0], [[0.0, 0.0]]),
+               result(2, [2.0, 0.0], [[0.0, 0.0]])]
+    blocks = solver.engaged_blocks(results, [(1, 2), (0,), (0,)], margin=0.1)
+    assert blocks.own.tolist() == [True, True, False]
+    assert blocks.copies == [(True, False), (True,), (False,)]
+    # a copy far away but an own plan close: still engaged (the copies have not caught up)
+    results[1] = result(1, [0.4, 0.0], [[3.0, 0.0]])
+    results[0] = result(0, [0.0, 0.0], [[3.0, 0.0], [2.0, 0.0]])
+    assert solver.engaged_blocks(results, [(1, 2), (0,), (0,)], margin=0.1).own.tolist() == [True, True, False]
 
 
 def test_executors_give_identical_plans():

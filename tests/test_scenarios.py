@@ -4,9 +4,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from swarmpc.config import load_scenario
-from swarmpc.model.geometry import inf_separation_ratio
+from swarmpc.model.geometry import inf_separation_ratio, point_box_distance
 from swarmpc.scenarios import BUILTINS, builtin_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -34,6 +36,18 @@ def test_random_is_seeded(seed):
     starts = a.start_states()[:, :3]
     gaps = np.linalg.norm(starts[:, None] - starts[None], axis=2) + np.eye(16) * 9
     assert gaps.min() >= 0.5
+
+
+@given(seed=st.integers(0, 10_000), agents=st.integers(2, 24))
+@settings(max_examples=15, deadline=None)
+def test_random_goals_and_starts_leave_room_for_the_separation(seed, agents):
+    """Every pair of starts and of goals keeps 0.1 m between a point and the other's delta box,
+    so all goals can be held at once (the OBCA separation d_min is 0.05 m)."""
+    scn = builtin_scenario("random", agents=agents, dim=3, seed=seed)
+    for points in (scn.start_states()[:, :3], scn.goal_states()[:, :3]):
+        for i in range(agents):
+            for j in range(i + 1, agents):
+                assert point_box_distance(points[i] - points[j], scn.delta_vector) >= 0.1 - 1e-3
 
 
 def test_scenarios_command_lists_every_builtin():

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from swarmpc.config import Scenario, ScenarioError, scenario_from_dict
+from swarmpc.model.geometry import point_box_distance
 
 PAPER = {"dt": 0.1, "horizon": 10, "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}, "stop": {"max_steps": 600}}
 
@@ -70,17 +71,26 @@ def circle(agents: int = 8, dim: int = 2, radius: float | None = None, delta: fl
 
 
 def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.3,
-                 min_gap: float = 0.5, **_: Any) -> dict[str, Any]:
-    """Seeded random starts and goals in a 3 x 3 (x 2) m box, pairwise >= ``min_gap`` apart."""
+                 min_gap: float = 0.5, clearance: float = 0.1, **_: Any) -> dict[str, Any]:
+    """Seeded random starts and goals in a 3 x 3 (x 2) m box, pairwise >= ``min_gap`` apart.
+
+    Every pair also leaves ``clearance`` (Euclidean) between one point and the other's delta box:
+    two goals closer than the OBCA separation d_min (0.05 m by default) can never both be held, and
+    Euclidean spacing alone allows that (offset (0.31, 0.31, 0.26) is 0.51 m long but 0.014 m from
+    the box).
+    """
     rng = np.random.default_rng(seed)
     lower = np.array([-1.5, -1.5, 0.2][:dim])
     upper = np.array([1.5, 1.5, 2.2][:dim])
+
+    def spaced(p: np.ndarray, q: np.ndarray) -> bool:
+        return bool(np.linalg.norm(p - q) >= min_gap and point_box_distance(p - q, delta) >= clearance)
 
     def sample() -> np.ndarray:
         points: list[np.ndarray] = []
         for _attempt in range(200000):
             p = rng.uniform(lower + 0.1, upper - 0.1)
-            if all(np.linalg.norm(p - q) >= min_gap and np.max(np.abs(p - q)) >= delta for q in points):
+            if all(spaced(p, q) for q in points):
                 points.append(p)
                 if len(points) == agents:
                     return np.array(points)

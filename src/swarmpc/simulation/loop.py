@@ -39,6 +39,7 @@ def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None 
     config = ADMMConfig(
         rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
         adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
+        coupling_margin=scn.solver.coupling_margin,
     )
     return ADMMSolver(settings, scn.num_agents, delta, config, executor)
 
