@@ -2,8 +2,9 @@
 
 Families (all with Δ = 0.3 and the paper's weights): ``circle`` (2D antipodal swap), ``sphere``
 (3D antipodal swap) and ``random`` (3D, seeded starts and goals in a 3 x 3 x 2 m box, >= 0.5 m
-apart, acceleration <= 1 m/s² per axis, goal tolerance 0.1 m). Each case is one closed-loop run in
-its own process; collisions and separations come from the run's trajectory, never from a flag.
+apart and >= 0.1 m from each other's delta box, acceleration <= 1 m/s² per axis, goal tolerance
+0.1 m). Each case is one closed-loop run in its own process; collisions and separations come from
+the run's trajectory, never from a flag.
 Numbers are wall-clock measurements on whatever machine runs it: read them as such.
 """
 
