@@ -747,15 +747,7 @@ class ADMMSolver:
                 total[j] += r.copies[slot]
                 count[j] += 1
         z = total / count[:, None, None]
-        squared = 0.0
-        entries = 0
-        for r in results:
-            squared += float(np.sum((r.own - z[r.agent]) ** 2))
-            entries += r.own.size
-            for slot, j in enumerate(neighbours[r.agent]):
-                squared += float(np.sum((r.copies[slot] - z[j]) ** 2))
-                entries += r.copies[slot].size
-        return z, float(np.sqrt(squared / max(entries, 1))), weights
+        return z, self._primal_residual(results, neighbours, z), weights
 
     def _dual_residual(
         self, change: np.ndarray, weights: np.ndarray, neighbours: list[tuple[int, ...]], rho: float,
@@ -807,17 +799,17 @@ class ADMMSolver:
 
     def _primal_residual(
         self, results: list[LocalResult], neighbours: list[tuple[int, ...]], z: np.ndarray,
-        blocks: EngagedBlocks,
+        blocks: EngagedBlocks | None = None,
     ) -> float:
-        """RMS of v - z over the engaged ``blocks`` only (0 when nothing is engaged)."""
+        """RMS of v - z over every block, or over ``blocks`` only (0 when none counts)."""
         squared = 0.0
         entries = 0
         for r in results:
-            if blocks.own[r.agent]:
+            if blocks is None or blocks.own[r.agent]:
                 squared += float(np.sum((r.own - z[r.agent]) ** 2))
                 entries += r.own.size
             for slot, j in enumerate(neighbours[r.agent]):
-                if blocks.copies[r.agent][slot]:
+                if blocks is None or blocks.copies[r.agent][slot]:
                     squared += float(np.sum((r.copies[slot] - z[j]) ** 2))
                     entries += r.copies[slot].size
         return float(np.sqrt(squared / max(entries, 1)))
