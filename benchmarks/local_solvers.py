@@ -31,17 +31,20 @@ OUT = Path(__file__).parent / "out"
 QUIET_SQP = {"print_header": False, "print_iteration": False, "print_status": False, "print_time": False,
              "expand": True, "max_iter": 100}
 
+WARM = "warm"
+"""Pseudo-option: build with the shipped warm-start options and pass the recorded multipliers."""
+
 CANDIDATES: dict[str, tuple[str, dict[str, Any]]] = {
-    "ipopt (shipped: adaptive mu, expanded SX)": ("ipopt", {}),
+    "ipopt (shipped: adaptive mu, expanded SX, multipliers warm-started)": ("ipopt", {WARM: True}),
+    "ipopt, primal warm start only (multipliers cold)": ("ipopt", {}),
     "ipopt, monotone mu": ("ipopt", {"ipopt.mu_strategy": "monotone"}),
     "ipopt, not expanded (MX)": ("ipopt", {"expand": False}),
     "ipopt, JIT-compiled derivatives (gcc -O2)": (
         "ipopt", {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O2"], "verbose": False}}),
-    "sqpmethod + qrqp": ("sqpmethod", {**QUIET_SQP, "qpsol": "qrqp",
+    "sqpmethod + qrqp (Hessian regularised)": ("sqpmethod", {**QUIET_SQP, "qpsol": "qrqp",
+                                                 "convexify_strategy": "regularize",
                                        "qpsol_options": {"print_iter": False, "print_header": False,
                                                          "error_on_fail": False}}),
-    "sqpmethod + osqp": ("sqpmethod", {**QUIET_SQP, "qpsol": "osqp",
-                                       "qpsol_options": {"osqp": {"verbose": False}, "error_on_fail": False}}),
     "fatrop (structure detection)": ("fatrop", {"expand": True, "structure_detection": "auto",
                                                 "fatrop": {"print_level": 0}, "print_time": False}),
 }
@@ -53,9 +56,10 @@ def record_problems(scenario: str, steps: int) -> tuple[OCPSettings, list[dict[s
     recorded: list[dict[str, Any]] = []
     original = admm.LocalSolverLadder.solve
 
-    def recording(self, params, guess, fixed=None, *, copies):  # type: ignore[no-untyped-def]
-        recorded.append({"slots": self.slots_for(copies), "params": params, "guess": guess, "fixed": fixed})
-        return original(self, params, guess, fixed, copies=copies)
+    def recording(self, params, guess, fixed=None, *, copies, duals=None):  # type: ignore[no-untyped-def]
+        recorded.append({"slots": self.slots_for(copies), "params": params, "guess": guess, "fixed": fixed,
+                         "duals": duals})
+        return original(self, params, guess, fixed, copies=copies, duals=duals)
 
     admm.LocalSolverLadder.solve = recording  # type: ignore[method-assign]
     try:
@@ -71,8 +75,17 @@ def admm_settings(scn: Any) -> OCPSettings:
 
 def build_candidate(settings: OCPSettings, slots: int, plugin: str, options: dict[str, Any]) -> CompiledNLP:
     if plugin == "ipopt":
-        return build_local(settings, slots, False, options)
+        warm = bool(options.get(WARM))
+        return build_local(settings, slots, False, {k: v for k, v in options.items() if k != WARM}, warm_start=warm)
     return build_local(settings, slots, False, options, plugin)
+
+
+def solve_recorded(nlp: CompiledNLP, problem: dict[str, Any]) -> Any:
+    """One recorded problem; its multipliers are used only by a solver built to warm-start."""
+    lam_x = lam_g = None
+    if nlp.warm_solver is not None and problem["duals"] is not None:
+        lam_x, lam_g = problem["duals"]
+    return nlp.solve(problem["params"], problem["guess"], lam_x, lam_g, fixed=problem["fixed"])
 
 
 def main() -> None:
@@ -81,7 +94,11 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=120)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--max-problems", type=int, default=300)
+    parser.add_argument("--only", default="", help="comma-separated substrings: run the matching candidates only")
     args = parser.parse_args()
+    wanted = [w.strip() for w in args.only.split(",") if w.strip()]
+    candidates = {name: spec for name, spec in CANDIDATES.items()
+                  if not wanted or any(w in name for w in wanted)}
 
     settings, problems = record_problems(args.scenario, args.steps)
     rng = np.random.default_rng(0)
@@ -91,12 +108,12 @@ def main() -> None:
     built: dict[str, dict[int, CompiledNLP]] = {}
     build_time: dict[str, float] = {}
     errors: dict[str, str] = {}
-    for name, (plugin, options) in CANDIDATES.items():
+    for name, (plugin, options) in candidates.items():
         started = time.perf_counter()
         try:
             built[name] = {k: build_candidate(settings, k, plugin, options) for k in sizes}
             probe = problems[0]
-            built[name][probe["slots"]].solve(probe["params"], probe["guess"], fixed=probe["fixed"])
+            solve_recorded(built[name][probe["slots"]], probe)
         except Exception as err:  # noqa: BLE001 - a candidate that cannot run is a finding, not a crash
             errors[name] = f"{type(err).__name__}: {str(err).splitlines()[0][:120]}"
             built.pop(name, None)
@@ -105,6 +122,7 @@ def main() -> None:
     times: dict[str, list[float]] = {name: [] for name in built}
     success: dict[str, list[bool]] = {name: [] for name in built}
     deviation: dict[str, list[float]] = {name: [] for name in built}
+    iterations: dict[str, list[int]] = {name: [] for name in built}
     reference = next(iter(built))
     for problem in problems:
         solutions = {}
@@ -112,39 +130,42 @@ def main() -> None:
             for name, solvers in built.items():  # interleaved: noise hits every candidate alike
                 started = time.perf_counter()
                 try:
-                    solution = solvers[problem["slots"]].solve(problem["params"], problem["guess"],
-                                                               fixed=problem["fixed"])
+                    solution = solve_recorded(solvers[problem["slots"]], problem)
                 except RuntimeError:  # a solver that throws on a problem has failed it
                     solution = None
                 times[name].append(1000.0 * (time.perf_counter() - started))
                 solutions[name] = solution
         for name, solution in solutions.items():
             success[name].append(solution is not None and solution.success)
+            if solution is not None:
+                iterations[name].append(solution.iterations)
             ref = solutions[reference]
             if solution is not None and solution.success and ref is not None and ref.success:
                 own = solution.x["X"] - ref.x["X"]
                 deviation[name].append(float(np.max(np.abs(own))))
 
     rows = []
-    for name in CANDIDATES:
+    for name in candidates:
         if name in errors:
             rows.append({"solver": name, "error": errors[name], "build_s": build_time[name]})
             continue
         rows.append({
             "solver": name, "median_ms": float(np.median(times[name])), "p95_ms": float(np.percentile(times[name], 95)),
             "success_rate": float(np.mean(success[name])),
+            "median_iterations": float(np.median(iterations[name])) if iterations[name] else float("nan"),
             "max_plan_deviation": float(max(deviation[name], default=float("nan"))),
             "median_plan_deviation": float(np.median(deviation[name])) if deviation[name] else float("nan"),
             "build_s": build_time[name],
         })
-    header = ("| local solver | median ms | p95 ms | success | plan deviation vs shipped (median / max) "
-              "| build s |\n|---|---|---|---|---|---|\n")
+    header = ("| local solver | median ms | p95 ms | solver iterations (median) | success "
+              "| plan deviation vs shipped (median / max) | build s |\n|---|---|---|---|---|---|---|\n")
     lines = []
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['solver']} | - | - | - | not usable: {r['error']} | {r['build_s']:.1f} |")
+            lines.append(f"| {r['solver']} | - | - | - | - | not usable: {r['error']} | {r['build_s']:.1f} |")
         else:
-            lines.append(f"| {r['solver']} | {r['median_ms']:.2f} | {r['p95_ms']:.2f} | {100 * r['success_rate']:.0f}% "
+            lines.append(f"| {r['solver']} | {r['median_ms']:.2f} | {r['p95_ms']:.2f} | {r['median_iterations']:.0f} "
+                         f"| {100 * r['success_rate']:.0f}% "
                          f"| {r['median_plan_deviation']:.1e} / {r['max_plan_deviation']:.1e} | {r['build_s']:.1f} |")
     counts = {k: sum(p['slots'] == k for p in problems) for k in sizes}
     intro = (f"{len(problems)} local problems recorded from `{args.scenario}` ({args.steps} MPC steps; "

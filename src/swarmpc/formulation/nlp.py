@@ -127,13 +127,23 @@ class ProblemBuilder:
         self._lbg[name] = np.broadcast_to(np.asarray(lb, float), shape)
         self._ubg[name] = np.broadcast_to(np.asarray(ub, float), shape)
 
-    def build(self, label: str, plugin: str = "ipopt", options: dict[str, Any] | None = None) -> CompiledNLP:
+    def build(
+        self, label: str, plugin: str = "ipopt", options: dict[str, Any] | None = None,
+        warm_options: dict[str, Any] | None = None,
+    ) -> CompiledNLP:
+        """Build the solver; with ``warm_options`` also a second one (same problem, those
+        options on top) used for calls that pass the previous solve's multipliers."""
         x = ca.vertcat(*[ca.vec(s) for s in self._x_syms])
         p = ca.vertcat(*[ca.vec(s) for s in self._p_syms]) if self._p_syms else ca.SX(0, 1)
         g = ca.vertcat(*[ca.vec(e) for e in self._g_exprs]) if self._g_exprs else ca.SX(0, 1)
-        solver = ca.nlpsol(label, plugin, {"x": x, "p": p, "f": self.cost, "g": g}, options or {})
+        problem = {"x": x, "p": p, "f": self.cost, "g": g}
+        solver = ca.nlpsol(label, plugin, problem, options or {})
+        warm_solver = None
+        if warm_options is not None:
+            warm_solver = ca.nlpsol(f"{label}_warm", plugin, problem, {**(options or {}), **warm_options})
         return CompiledNLP(
             solver=solver,
+            warm_solver=warm_solver,
             constraint_function=ca.Function(f"{label}_g", [x, p], [g]),
             x_layout=self._x,
             p_layout=self._p,
@@ -158,6 +168,7 @@ class CompiledNLP:
     ubx: np.ndarray
     lbg: np.ndarray
     ubg: np.ndarray
+    warm_solver: ca.Function | None = None
 
     def solve(
         self,
@@ -185,14 +196,17 @@ class CompiledNLP:
             "lbg": self.lbg,
             "ubg": self.ubg,
         }
+        solver = self.solver
         if lam_x is not None:
             args["lam_x0"] = lam_x
         if lam_g is not None:
             args["lam_g0"] = lam_g
+            if self.warm_solver is not None:
+                solver = self.warm_solver
         started = time.perf_counter()
-        out = self.solver(**args)
+        out = solver(**args)
         elapsed = time.perf_counter() - started
-        stats = self.solver.stats()
+        stats = solver.stats()
         x_vec = np.asarray(out["x"]).ravel()
         lam_g_vec = np.asarray(out["lam_g"]).ravel()
         finite = bool(np.all(np.isfinite(x_vec)))

@@ -86,6 +86,17 @@ class OCPSettings:
         return self.horizon + 1 - self.first_constrained_step
 
 
+WARM_START_OPTIONS = {
+    "ipopt.warm_start_init_point": "yes",
+    "ipopt.warm_start_bound_push": 1e-6,
+    "ipopt.warm_start_bound_frac": 1e-6,
+    "ipopt.warm_start_slack_bound_push": 1e-6,
+    "ipopt.warm_start_slack_bound_frac": 1e-6,
+    "ipopt.warm_start_mult_bound_push": 1e-6,
+    "ipopt.mu_init": 1e-4,
+}
+"""IPOPT options for a solve that starts from the previous solve's primal and dual point."""
+
 IPOPT_OPTIONS = {
     "expand": True,
     "print_time": False,
@@ -226,7 +237,7 @@ def build_centralized(s: OCPSettings, num_agents: int, options: dict | None = No
 
 def build_local(
     s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict | None = None,
-    plugin: str = "ipopt",
+    plugin: str = "ipopt", warm_start: bool = False,
 ) -> CompiledNLP:
     """Agent i's ADMM subproblem with ``num_copies`` local copies of other agents.
 
@@ -267,7 +278,8 @@ def build_local(
     label = f"local_{num_copies}_{int(dynamic_copies)}"
     if plugin != "ipopt":
         return builder.build(label, plugin, options or {})
-    return builder.build(label, "ipopt", {**IPOPT_OPTIONS, **(options or {})})
+    return builder.build(label, "ipopt", {**IPOPT_OPTIONS, **(options or {})},
+                         warm_options=WARM_START_OPTIONS if warm_start else None)
 
 
 def consensus_penalty(v: ca.SX, z: ca.SX, y: ca.SX, rho: ca.SX) -> ca.SX:
