@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.formulation.ocp import OCPSettings, build_local
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalSolverLadder
@@ -55,3 +55,26 @@ def test_lone_agent_plan_does_not_depend_on_idle_slots():
         assert set(ladder._built) == ({1} if force_slots else {0})
         solver.close()
     assert np.allclose(plans[0].states, plans[1].states, atol=1e-5)
+
+
+def test_warm_started_multipliers_reach_the_same_solution_in_fewer_iterations():
+    """The next ADMM iterate's problem differs only in its consensus targets; started from the
+    last solution's multipliers IPOPT lands on the cold solve's solution, sooner."""
+    scn = builtin_scenario("paper-2d")
+    s = OCPSettings.from_scenario(scn)
+    nlp = build_local(s, 1, warm_start=True)
+    states, goals = scn.start_states(), scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+    first, d, K = s.first_constrained_step, s.dim, s.num_constrained
+    own, other = guess[0][first:, :d].T, guess[2][first:, :d].T  # diagonal neighbours meet mid-way
+    params = {"x0": states[0], "goal": goals[0], "delta": scn.delta_vector, "rho": 10.0, "owner_weight": 5.0,
+              "Z": own, "Y": np.zeros((d, K)), "Z0": other, "Y0": np.zeros((d, K)), "active0": 1.0}
+    start = {"X": guess[0].T, "C0": other}
+    previous = nlp.solve(params, start)
+    assert previous.success
+    moved = {**params, "Z0": other + 0.2, "Y0": np.full((d, K), 0.5)}
+    cold = nlp.solve(moved, previous.x_vec)
+    warm = nlp.solve(moved, previous.x_vec, previous.lam_x, previous.lam_g)
+    assert cold.success and warm.success
+    assert np.max(np.abs(warm.x["X"] - cold.x["X"])) <= 1e-4
+    assert warm.iterations < cold.iterations
