@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -78,3 +80,29 @@ def test_warm_started_multipliers_reach_the_same_solution_in_fewer_iterations():
     assert cold.success and warm.success
     assert np.max(np.abs(warm.x["X"] - cold.x["X"])) <= 1e-4
     assert warm.iterations < cold.iterations
+
+
+def test_a_failed_warm_start_is_retried_cold(settings):
+    """Multipliers carried from the last iterate can mislead IPOPT; the ladder then solves again
+    without them and reports the time of both attempts."""
+    ladder = LocalSolverLadder(settings, 2, False, warm_start=True)
+    real = ladder.solver(1)
+    calls = []
+
+    class WarmFails:
+        def solve(self, params, guess, lam_x=None, lam_g=None, fixed=None):
+            calls.append(lam_g is not None)
+            solution = real.solve(params, guess, fixed=fixed)
+            return replace(solution, success=False, status="Infeasible_Problem_Detected") if lam_g is not None else solution
+
+    ladder._built[1] = WarmFails()
+    scn = builtin_scenario("paper-2d")
+    states, goals = scn.start_states(), scn.goal_states()
+    d, K = settings.dim, settings.num_constrained
+    params = {"x0": states[0], "goal": goals[0], "delta": scn.delta_vector, "rho": 10.0, "owner_weight": 5.0,
+              "Z": np.zeros((d, K)), "Y": np.zeros((d, K)), "Z0": np.ones((d, K)), "Y0": np.zeros((d, K)),
+              "active0": 1.0}
+    first = ladder.solve(params, {}, copies=1)
+    retried = ladder.solve(params, first.x, copies=1, duals=(first.lam_x, first.lam_g))
+    assert calls == [False, True, False]
+    assert retried.success and np.allclose(retried.x["X"], first.x["X"], atol=1e-6)

@@ -147,11 +147,16 @@ class LocalSolverLadder:
         """Solve the problem sized for ``copies`` neighbours (see :meth:`CompiledNLP.solve`);
         ``duals``: multipliers of the bounds and constraints (from a previous solve of the same
         problem) that start this one when the ladder warm-starts."""
-        lam_x = lam_g = None
-        if duals is not None and self.warm_start:
-            lam_x, lam_g = duals
         with self._lock:
-            return self.solver(self.slots_for(copies)).solve(params, guess, lam_x, lam_g, fixed=fixed)
+            nlp = self.solver(self.slots_for(copies))
+            if duals is None or not self.warm_start:
+                return nlp.solve(params, guess, fixed=fixed)
+            warm = nlp.solve(params, guess, *duals, fixed=fixed)
+            if warm.success:
+                return warm
+            # a warm start that fails is retried cold: the multipliers were the bad part
+            cold = nlp.solve(params, guess, fixed=fixed)
+            return replace(cold, solve_time=warm.solve_time + cold.solve_time)
 
 
 class LocalAgentFactory:
