@@ -52,9 +52,10 @@ class _Layout:
         for name, value in values.items():
             block = self.blocks[name]
             array = np.asarray(value, float)
-            if array.ndim == 1 and array.size == block.size:
-                array = array.reshape(block.shape, order="F")
-            out[block.start : block.stop] = np.broadcast_to(array, block.shape).ravel(order="F")
+            if array.ndim <= 1 and array.size in (1, block.size):
+                out[block.start : block.stop] = array  # a vector already in CasADi's order, or a scalar
+            else:
+                out[block.start : block.stop] = np.broadcast_to(array, block.shape).ravel(order="F")
         return out
 
     def unpack(self, vector: np.ndarray) -> Arrays:
