@@ -294,7 +294,7 @@ class LocalAgent:
         """The last iterate's multipliers, for a later ADMM iteration of the same MPC step on the
         same problem. A new step starts cold: shifted multipliers let a lone agent's plan slide
         out of local minima it used to keep (u-trap), a change of behaviour, not only of speed."""
-        if self._last is None or not same_shape or request.new_step or not self.nlp.warm_start:
+        if self._last is None or not same_shape or request.new_step:
             return None
         return self._last.lam_x, self._last.lam_g
 
