@@ -106,6 +106,30 @@ def test_engaged_blocks_mark_only_binding_pairs():
     assert solver.engaged_blocks(results, [(1, 2), (0,), (0,)], margin=0.1).own.tolist() == [True, True, False]
 
 
+@pytest.mark.parametrize("carry", [False, True])
+def test_new_step_starts_from_zero_multipliers_unless_carried(carry):
+    """By default each MPC step's ADMM starts from zero multipliers: a multiplier carried across
+    steps loses its counterpart whenever a pair decouples, and then biases the plan. With
+    ``carry_multipliers`` the paper's shifted multipliers are kept."""
+    scn, states = approach_state("paper-2d")
+    s = OCPSettings.from_scenario(scn)
+    goals = scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+    executor = SerialExecutor()
+    config = ADMMConfig(max_iter=5, carry_multipliers=carry)
+    solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, config, executor)
+    solver.plan(states, goals, guess)
+    agents = list(executor._agents.values())
+
+    def largest_multiplier() -> float:
+        return max((float(np.abs(a._gamma_own).max()) for a in agents if a._gamma_own is not None), default=0.0)
+
+    assert largest_multiplier() > 0.0  # iterations after the first updated the multipliers
+    solver.config = ADMMConfig(max_iter=1, carry_multipliers=carry)  # only the step's first iteration
+    solver.plan(states, goals, guess)
+    assert (largest_multiplier() > 0.0) == carry
+
+
 def test_executors_give_identical_plans():
     scn, states = approach_state("paper-2d", steps=15)
     s = OCPSettings.from_scenario(scn)

@@ -48,6 +48,12 @@ class ADMMConfig:
     stall_rho_factor: float | None = 2.0
     rho_bounds: tuple[float, float] = (1e-2, 1e3)
     seed_duals: bool = True
+    carry_multipliers: bool = False
+    """Start each MPC step from the previous step's consensus multipliers shifted by one step (the
+    paper's warm start) instead of zero. Off by default: a block's multipliers sum to zero only
+    while its coupling is unchanged, and in a dense swarm pairs decouple and re-couple every few
+    steps; an agent then keeps a multiplier whose counterpart was dropped, which acts as a constant
+    force and held agents at rest 0.15 m from a free goal for hundreds of steps (docs/admm.md)."""
     warm_start: bool = True
     """Start each ADMM iteration's local solve after the first of an MPC step from the previous
     iterate's multipliers too, not only its primal point (IPOPT warm start). Halves the
@@ -165,16 +171,18 @@ class LocalAgentFactory:
 
     def __init__(
         self, settings: OCPSettings, slots: int, dynamic_copies: bool = True, seed_duals: bool = True,
-        warm_start: bool = False,
+        warm_start: bool = False, carry_multipliers: bool = False,
     ) -> None:
         self.settings = settings
         self.slots = slots
         self.dynamic_copies = dynamic_copies
         self.seed_duals = seed_duals
+        self.carry_multipliers = carry_multipliers
         self.ladder = LocalSolverLadder(settings, slots, dynamic_copies, warm_start=warm_start)
 
     def __call__(self, agent: int) -> LocalAgent:
-        return LocalAgent(agent, self.settings, self.ladder, self.dynamic_copies, self.seed_duals)
+        return LocalAgent(agent, self.settings, self.ladder, self.dynamic_copies, self.seed_duals,
+                          self.carry_multipliers)
 
 
 def trajectory_through(state: np.ndarray, z: np.ndarray, s: OCPSettings) -> np.ndarray:
@@ -201,10 +209,11 @@ class LocalAgent:
 
     def __init__(
         self, agent: int, settings: OCPSettings, nlp: LocalSolverLadder, dynamic_copies: bool,
-        seed_duals: bool = True,
+        seed_duals: bool = True, carry_multipliers: bool = False,
     ) -> None:
         self.agent = agent
         self.seed_duals = seed_duals
+        self.carry_multipliers = carry_multipliers
         self.dynamic_copies = dynamic_copies
         self.settings = settings
         self.nlp = nlp
@@ -217,6 +226,10 @@ class LocalAgent:
 
     def _multipliers_step(self, request: LocalRequest) -> None:
         last = self._last_sent
+        if request.new_step and not self.carry_multipliers:
+            # a new MPC step starts from zero multipliers (see ADMMConfig.carry_multipliers)
+            self._gamma_own, self._gamma = None, {}
+            return
         if request.new_step or last is None:
             if self._gamma_own is not None:
                 self._gamma_own = shift_blocks({"own": self._gamma_own})["own"]
@@ -510,7 +523,7 @@ class ADMMSolver:
         self.config = config
         self.executor = executor or SerialExecutor()
         factory = LocalAgentFactory(settings, max(num_agents - 1, 1), config.dynamic_copies, config.seed_duals,
-                                    config.warm_start)
+                                    config.warm_start, config.carry_multipliers)
         self.executor.start(factory, range(num_agents))
         self._z: np.ndarray | None = None
         self._rho = config.rho
