@@ -106,28 +106,37 @@ def test_engaged_blocks_mark_only_binding_pairs():
     assert solver.engaged_blocks(results, [(1, 2), (0,), (0,)], margin=0.1).own.tolist() == [True, True, False]
 
 
-@pytest.mark.parametrize("carry", [False, True])
-def test_new_step_starts_from_zero_multipliers_unless_carried(carry):
-    """By default each MPC step's ADMM starts from zero multipliers: a multiplier carried across
-    steps loses its counterpart whenever a pair decouples, and then biases the plan. With
-    ``carry_multipliers`` the paper's shifted multipliers are kept."""
+@pytest.mark.parametrize("mode", ["never", "always", "stable"])
+def test_new_step_carries_only_consistent_multipliers(mode):
+    """A new MPC step starts from zero multipliers ("never"), the shifted ones (the paper's
+    "always"), or ("stable", the default) those of blocks whose coupling is unchanged, decided
+    alike by every holder of a block so that each block's multipliers still sum to zero."""
     scn, states = approach_state("paper-2d")
     s = OCPSettings.from_scenario(scn)
     goals = scn.goal_states()
     guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
     executor = SerialExecutor()
-    config = ADMMConfig(max_iter=5, carry_multipliers=carry)
-    solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, config, executor)
+    solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(max_iter=5, carry_multipliers=mode),
+                        executor)
     solver.plan(states, goals, guess)
-    agents = list(executor._agents.values())
+    agents = executor._agents
 
-    def largest_multiplier() -> float:
-        return max((float(np.abs(a._gamma_own).max()) for a in agents if a._gamma_own is not None), default=0.0)
+    def own_multiplier(i: int) -> float:
+        gamma = agents[i]._gamma_own
+        return 0.0 if gamma is None else float(np.abs(gamma).max())
 
-    assert largest_multiplier() > 0.0  # iterations after the first updated the multipliers
-    solver.config = ADMMConfig(max_iter=1, carry_multipliers=carry)  # only the step's first iteration
+    coupled = [i for i in agents if own_multiplier(i) > 0.0]
+    assert coupled  # iterations after the first updated the multipliers
+    solver.config = ADMMConfig(max_iter=1, carry_multipliers=mode)  # only the step's first iteration
+    if mode == "stable":
+        # agent 0 decoupled from everyone: its block restarts for every holder; the others keep theirs
+        solver._final_neighbours = [(9,), *solver._final_neighbours[1:]]
     solver.plan(states, goals, guess)
-    assert (largest_multiplier() > 0.0) == carry
+    for i in coupled:
+        carried = own_multiplier(i) > 0.0
+        assert carried == (mode == "always" or (mode == "stable" and i != 0))
+        if mode == "stable":
+            assert 0 not in agents[i]._gamma
 
 
 def test_executors_give_identical_plans():

@@ -21,7 +21,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -48,12 +48,14 @@ class ADMMConfig:
     stall_rho_factor: float | None = 2.0
     rho_bounds: tuple[float, float] = (1e-2, 1e3)
     seed_duals: bool = True
-    carry_multipliers: bool = False
-    """Start each MPC step from the previous step's consensus multipliers shifted by one step (the
-    paper's warm start) instead of zero. Off by default: a block's multipliers sum to zero only
-    while its coupling is unchanged, and in a dense swarm pairs decouple and re-couple every few
-    steps; an agent then keeps a multiplier whose counterpart was dropped, which acts as a constant
-    force and held agents at rest 0.15 m from a free goal for hundreds of steps (docs/admm.md)."""
+    carry_multipliers: Literal["stable", "always", "never"] = "stable"
+    """Which consensus multipliers a new MPC step starts from (shifted by one step) rather than
+    from zero. "always": every one (the paper). "never": none. "stable" (default): those of the
+    blocks whose agent has the same neighbours as at the end of the previous step, for every
+    holder of the block alike. A block's multipliers sum to zero (the plain average is then
+    ADMM's z-update) only while nobody drops a copy of it; a multiplier kept after its
+    counterpart was dropped acts as a constant force, which held agents at rest 0.15 m from
+    free goals for hundreds of steps in dense swarms (docs/admm.md)."""
     warm_start: bool = True
     """Start each ADMM iteration's local solve after the first of an MPC step from the previous
     iterate's multipliers too, not only its primal point (IPOPT warm start). Halves the
@@ -82,6 +84,9 @@ class LocalRequest:
     neighbour_states: np.ndarray
     guess: np.ndarray
     neighbour_plans: tuple[np.ndarray, np.ndarray] | None = None
+    carry: tuple[bool, ...] = ()
+    """At a new step: per block (own, then each neighbour's), whether its multiplier is carried
+    over (shifted) instead of restarting from zero; missing entries restart."""
 
 
 @dataclass(frozen=True)
@@ -171,18 +176,16 @@ class LocalAgentFactory:
 
     def __init__(
         self, settings: OCPSettings, slots: int, dynamic_copies: bool = True, seed_duals: bool = True,
-        warm_start: bool = False, carry_multipliers: bool = False,
+        warm_start: bool = False,
     ) -> None:
         self.settings = settings
         self.slots = slots
         self.dynamic_copies = dynamic_copies
         self.seed_duals = seed_duals
-        self.carry_multipliers = carry_multipliers
         self.ladder = LocalSolverLadder(settings, slots, dynamic_copies, warm_start=warm_start)
 
     def __call__(self, agent: int) -> LocalAgent:
-        return LocalAgent(agent, self.settings, self.ladder, self.dynamic_copies, self.seed_duals,
-                          self.carry_multipliers)
+        return LocalAgent(agent, self.settings, self.ladder, self.dynamic_copies, self.seed_duals)
 
 
 def trajectory_through(state: np.ndarray, z: np.ndarray, s: OCPSettings) -> np.ndarray:
@@ -209,11 +212,10 @@ class LocalAgent:
 
     def __init__(
         self, agent: int, settings: OCPSettings, nlp: LocalSolverLadder, dynamic_copies: bool,
-        seed_duals: bool = True, carry_multipliers: bool = False,
+        seed_duals: bool = True,
     ) -> None:
         self.agent = agent
         self.seed_duals = seed_duals
-        self.carry_multipliers = carry_multipliers
         self.dynamic_copies = dynamic_copies
         self.settings = settings
         self.nlp = nlp
@@ -226,14 +228,13 @@ class LocalAgent:
 
     def _multipliers_step(self, request: LocalRequest) -> None:
         last = self._last_sent
-        if request.new_step and not self.carry_multipliers:
-            # a new MPC step starts from zero multipliers (see ADMMConfig.carry_multipliers)
-            self._gamma_own, self._gamma = None, {}
-            return
         if request.new_step or last is None:
+            carry = request.carry + (False,) * (1 + len(request.neighbours) - len(request.carry))
             if self._gamma_own is not None:
-                self._gamma_own = shift_blocks({"own": self._gamma_own})["own"]
-            self._gamma = shift_blocks({j: y for j, y in self._gamma.items() if j in request.neighbours})
+                self._gamma_own = shift_blocks({"own": self._gamma_own})["own"] if carry[0] else None
+            self._gamma = shift_blocks({
+                j: self._gamma[j] for slot, j in enumerate(request.neighbours) if carry[1 + slot] and j in self._gamma
+            })
             return
         rho = request.rho_previous
         self._gamma_own = (self._gamma_own if self._gamma_own is not None else 0.0) + (
@@ -523,10 +524,11 @@ class ADMMSolver:
         self.config = config
         self.executor = executor or SerialExecutor()
         factory = LocalAgentFactory(settings, max(num_agents - 1, 1), config.dynamic_copies, config.seed_duals,
-                                    config.warm_start, config.carry_multipliers)
+                                    config.warm_start)
         self.executor.start(factory, range(num_agents))
         self._z: np.ndarray | None = None
         self._rho = config.rho
+        self._final_neighbours: list[tuple[int, ...]] | None = None
 
     def close(self) -> None:
         self.executor.close()
@@ -622,9 +624,11 @@ class ADMMSolver:
         results: list[LocalResult] = []
         converged = False
         window_start = 0
+        carry = self._carried_blocks(neighbours)
         for iteration in range(cfg.max_iter):
             requests = [
-                self._request(i, states, goals, guess, neighbours[i], z, rho, rho_previous, iteration == 0)
+                self._request(i, states, goals, guess, neighbours[i], z, rho, rho_previous, iteration == 0,
+                              carry=carry[i] if iteration == 0 else ())
                 for i in range(M)
             ]
             results = self.executor.solve(requests)
@@ -683,6 +687,7 @@ class ADMMSolver:
         # next step's consensus starts from the plans actually applied: after a repair pass the
         # average z of a non-converged iterate is not what any agent flies
         self._z = np.array([r.own for r in results])
+        self._final_neighbours = neighbours
         self._rho = rho if cfg.adaptive_rho else cfg.rho
         plans_x = np.array([r.states for r in results])
         plans_u = np.array([r.inputs for r in results])
@@ -703,6 +708,18 @@ class ADMMSolver:
             rho_history=rhos,
         )
 
+    def _carried_blocks(self, neighbours: list[tuple[int, ...]]) -> list[tuple[bool, ...]]:
+        """Per agent, which of its multipliers (own block, then each neighbour's) the new step
+        carries over (see ``ADMMConfig.carry_multipliers``); every holder of a block decides
+        alike, so each block's multipliers keep summing to zero."""
+        mode, previous = self.config.carry_multipliers, self._final_neighbours
+        if mode == "always":
+            return [(True,) * (1 + len(n)) for n in neighbours]
+        if mode == "never" or previous is None:
+            return [(False,) * (1 + len(n)) for n in neighbours]
+        stable = [n == p for n, p in zip(neighbours, previous)]
+        return [(stable[i], *(stable[j] for j in n)) for i, n in enumerate(neighbours)]
+
     def _stalled(self, primal: list[float]) -> bool:
         """No 10% progress of the primal residual over the last ``stall_window`` iterations: more
         iterations will not reach consensus, so stop and let the repair pass finish the step."""
@@ -714,7 +731,7 @@ class ADMMSolver:
     def _request(
         self, i: int, states: np.ndarray, goals: np.ndarray, guess: np.ndarray, neighbours: tuple[int, ...],
         z: np.ndarray, rho: float, rho_previous: float, new_step: bool,
-        plans: tuple[np.ndarray, np.ndarray] | None = None,
+        plans: tuple[np.ndarray, np.ndarray] | None = None, carry: tuple[bool, ...] = (),
     ) -> LocalRequest:
         first = self.settings.first_constrained_step
         if plans is None:
@@ -736,6 +753,7 @@ class ADMMSolver:
             neighbour_states=states[list(neighbours)],
             guess=guess[i],
             neighbour_plans=plans,
+            carry=carry,
         )
 
     def _repair(
