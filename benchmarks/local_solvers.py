@@ -37,6 +37,10 @@ WARM = "warm"
 CANDIDATES: dict[str, tuple[str, dict[str, Any]]] = {
     "ipopt (shipped: adaptive mu, expanded SX, multipliers warm-started)": ("ipopt", {WARM: True}),
     "ipopt, primal warm start only (multipliers cold)": ("ipopt", {}),
+    "ipopt, multipliers warm-started, SPRAL linear solver": (
+        "ipopt", {WARM: True, "ipopt.linear_solver": "spral"}),
+    "ipopt, multipliers warm-started, no NLP scaling": (
+        "ipopt", {WARM: True, "ipopt.nlp_scaling_method": "none"}),
     "ipopt, monotone mu": ("ipopt", {"ipopt.mu_strategy": "monotone"}),
     "ipopt, not expanded (MX)": ("ipopt", {"expand": False}),
     "ipopt, JIT-compiled derivatives (gcc -O2)": (
@@ -50,9 +54,10 @@ CANDIDATES: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
-def record_problems(scenario: str, steps: int) -> tuple[OCPSettings, list[dict[str, Any]]]:
+def record_problems(scenario: str, steps: int, agents: int | None = None) -> tuple[OCPSettings, list[dict[str, Any]]]:
     """Run ADMM in closed loop and keep every local problem it solved."""
-    scn = builtin_scenario(scenario).with_updates(**{"stop.max_steps": steps})
+    scn = builtin_scenario(scenario, **({"agents": agents} if agents else {})).with_updates(
+        **{"stop.max_steps": steps})
     recorded: list[dict[str, Any]] = []
     original = admm.LocalSolverLadder.solve
 
@@ -91,6 +96,7 @@ def solve_recorded(nlp: CompiledNLP, problem: dict[str, Any]) -> Any:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="paper-2d")
+    parser.add_argument("--agents", type=int, default=None, help="swarm size of a generated scenario")
     parser.add_argument("--steps", type=int, default=120)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--max-problems", type=int, default=300)
@@ -100,7 +106,7 @@ def main() -> None:
     candidates = {name: spec for name, spec in CANDIDATES.items()
                   if not wanted or any(w in name for w in wanted)}
 
-    settings, problems = record_problems(args.scenario, args.steps)
+    settings, problems = record_problems(args.scenario, args.steps, args.agents)
     rng = np.random.default_rng(0)
     if len(problems) > args.max_problems:
         problems = [problems[i] for i in sorted(rng.choice(len(problems), args.max_problems, replace=False))]
@@ -168,7 +174,8 @@ def main() -> None:
                          f"| {100 * r['success_rate']:.0f}% "
                          f"| {r['median_plan_deviation']:.1e} / {r['max_plan_deviation']:.1e} | {r['build_s']:.1f} |")
     counts = {k: sum(p['slots'] == k for p in problems) for k in sizes}
-    intro = (f"{len(problems)} local problems recorded from `{args.scenario}` ({args.steps} MPC steps; "
+    source = f"{args.scenario}, {args.agents} agents" if args.agents else args.scenario
+    intro = (f"{len(problems)} local problems recorded from `{source}` ({args.steps} MPC steps; "
              f"problems by copy slots: {counts}), each solved {args.repeats}x per solver, interleaved.\n\n")
     OUT.mkdir(exist_ok=True)
     (OUT / "local_solvers.md").write_text(intro + header + "\n".join(lines) + "\n")

@@ -10,7 +10,8 @@ import pytest
 from swarmpc.formulation.ocp import OCPSettings, build_local
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.guessing import GuessProvider
-from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalSolverLadder
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalAgentFactory, LocalRequest, LocalSolverLadder
+from swarmpc.solvers.executors import SerialExecutor
 
 
 @pytest.fixture(scope="module")
@@ -18,8 +19,8 @@ def settings():
     return OCPSettings.from_scenario(builtin_scenario("paper-2d"))
 
 
-@pytest.mark.parametrize(("copies", "slots"), [(0, 0), (1, 1), (2, 2), (3, 4), (4, 4), (5, 8), (9, 9)])
-def test_slots_follow_a_doubling_ladder_capped_at_the_swarm(settings, copies, slots):
+@pytest.mark.parametrize(("copies", "slots"), [(0, 0), (1, 1), (2, 2), (3, 3), (5, 5), (9, 9)])
+def test_slots_match_the_neighbour_count(settings, copies, slots):
     assert LocalSolverLadder(settings, 9, False).slots_for(copies) == slots
 
 
@@ -106,3 +107,62 @@ def test_a_failed_warm_start_is_retried_cold(settings):
     retried = ladder.solve(params, first.x, copies=1, duals=(first.lam_x, first.lam_g))
     assert calls == [False, True, False]
     assert retried.success and np.allclose(retried.x["X"], first.x["X"], atol=1e-6)
+
+
+def _lone_request(scn, s, state, new_step: bool) -> LocalRequest:
+    d, K = s.dim, s.num_constrained
+    goal = scn.goal_states()[0]
+    guess = GuessProvider(scn, s, "straight").guesses(scn.start_states(), scn.goal_states(), None)[0]
+    return LocalRequest(
+        agent=0, state=state, goal=goal, delta=scn.delta_vector, rho=10.0, rho_previous=10.0, owner_weight=0.0,
+        new_step=new_step, z_own=guess[s.first_constrained_step:, :d].T, neighbours=(),
+        z_neighbours=np.zeros((0, d, K)), neighbour_states=np.zeros((0, 2 * d)), guess=guess,
+    )
+
+
+def test_unchanged_lone_problem_is_answered_without_a_solve():
+    """Nobody couples with the agent: a later iteration of the same step poses the same problem
+    (no consensus block, so no z or rho in it) and gets the last answer at no cost; a new state
+    or a new step is solved again."""
+    scn = builtin_scenario("paper-2d")
+    s = OCPSettings.from_scenario(scn)
+    agent = LocalAgentFactory(s, 3)(0)
+    solves = []
+    original = agent.nlp.solve
+    agent.nlp.solve = lambda *a, **k: solves.append(1) or original(*a, **k)  # type: ignore[method-assign]
+    state = scn.start_states()[0]
+    first = agent.solve(_lone_request(scn, s, state, new_step=True))
+    again = agent.solve(_lone_request(scn, s, state, new_step=False))
+    assert first.success and len(solves) == 1
+    assert again.solve_time == 0.0 and np.array_equal(again.states, first.states)
+    agent.solve(_lone_request(scn, s, state + 0.01, new_step=False))
+    agent.solve(_lone_request(scn, s, state + 0.01, new_step=True))
+    assert len(solves) == 3
+
+
+def test_skipping_unchanged_lone_problems_keeps_the_plans():
+    """A step of a swarm where some agents are lone and others negotiate: the same plans whether
+    lone agents re-solve every iteration or not, with fewer solves."""
+    scn = builtin_scenario("random", agents=8, dim=3, seed=0)
+    s = OCPSettings.from_scenario(scn)
+    states, goals = scn.start_states(), scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+    outcomes = []
+    for skip in (True, False):
+        executor = SerialExecutor()
+        # a small coupling margin leaves some of the eight agents lone at the start
+        solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(coupling_margin=0.1), executor)
+        solves = []
+        ladder = executor._agents[0].nlp
+        original = ladder.solve
+        ladder.solve = lambda *a, **k: solves.append(1) or original(*a, **k)  # type: ignore[method-assign]
+        if not skip:
+            for agent in executor._agents.values():
+                agent._unchanged_lone_problem = lambda request: False
+        plan = solver.plan(states, goals, guess)
+        outcomes.append((plan, len(solves)))
+        solver.close()
+    (skipped, fewer), (full, more) = outcomes
+    assert full.admm_iterations > 1 and fewer < more
+    assert skipped.admm_iterations == full.admm_iterations
+    assert np.allclose(skipped.states, full.states, atol=1e-5)
