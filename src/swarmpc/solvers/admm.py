@@ -315,17 +315,15 @@ class LocalAgent:
         """True when this request is the same lone problem the last one was: nobody couples with
         the agent, in the same MPC step, from the same state. Without consensus blocks its problem
         does not depend on z or rho, so the last (successful) answer is the answer again."""
-        last = self._last_sent
         return (
             not request.neighbours and not request.new_step and request.neighbour_plans is None
-            and self._last_neighbours == () and last is not None and last.success
+            and self._last_neighbours == () and self._last_sent is not None and self._last_sent.success
             and self._last_state is not None and np.array_equal(request.state, self._last_state)
         )
 
     def solve(self, request: LocalRequest) -> LocalResult:
         """Multiplier update for the new consensus, then the local NLP."""
-        if self._unchanged_lone_problem(request):
-            assert self._last_sent is not None
+        if self._unchanged_lone_problem(request) and self._last_sent is not None:
             return replace(self._last_sent, solve_time=0.0)
         self._last_state = request.state
         s = self.settings
