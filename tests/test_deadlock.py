@@ -114,3 +114,31 @@ def test_slow_approach_next_to_a_parked_agent_is_not_a_jam():
         states = np.array([[-0.3 - 0.003 * step, 0.0, -0.03, 0.0], [0.4, 0.0, 0.0, 0.0]])
         stuck.goals(step, states, goals)
     assert stuck.events and stuck.events[0] == (stuck.policy.patience - 1, 0)
+
+
+def test_overshot_free_goal_among_parked_neighbours_is_not_a_jam():
+    # agent 0 drifted 0.2-0.3 m past its goal and brakes slowly; parked agents sit 0.55 m from it,
+    # none of them in the corridor back to its goal: nothing to unjam (it used to circle its goal)
+    resolver = DeadlockResolver(3, 2, clearance=0.35)
+    goals = np.array([[0.0, 0.0, 0, 0], [0.55, 0.35, 0, 0], [-0.35, 0.55, 0, 0]])
+    for step in range(40):
+        x = 0.2 + 0.002 * step
+        states = np.array([[x, 0.0, 0.02, 0.0], [0.55, 0.35, 0, 0], [-0.35, 0.55, 0, 0]])
+        assert np.array_equal(resolver.goals(step, states, goals), goals)
+    assert resolver.events == []
+    # the same drift with a parked agent between it and its goal is a jam
+    blocked = DeadlockResolver(3, 2, clearance=0.35)
+    goals[1] = [-0.45, 0.0, 0, 0]
+    for step in range(40):
+        x = 0.2 + 0.002 * step
+        states = np.array([[x, 0.0, 0.02, 0.0], [0.1, 0.05, 0, 0], [-0.35, 0.55, 0, 0]])
+        blocked.goals(step, states, goals)
+    assert blocked.events and blocked.events[0] == (blocked.policy.patience, 0)  # 0.2 m: not yet "far"
+
+
+def test_blocking_follows_the_clearance_per_axis():
+    # a neighbour 0.3 m above the corridor blocks when the vertical clearance is large (downwash)
+    positions = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 1.3]])
+    goals = np.array([[1.0, 0.0, 1.0], [0.5, 0.0, 1.3]])
+    assert not DeadlockResolver(2, 3, clearance=0.2).blocked(positions, goals)[0]
+    assert DeadlockResolver(2, 3, clearance=np.array([0.2, 0.2, 0.35])).blocked(positions, goals)[0]
