@@ -15,7 +15,7 @@ from conftest import recount_collisions
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.dynamics import DoubleIntegrator
 from swarmpc.scenarios import builtin_scenario
-from swarmpc.simulation.loop import simulate
+from swarmpc.simulation.loop import make_solver, simulate
 from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalResult, reach_candidates, reach_radius
 from swarmpc.solvers.base import braking_plan
 
@@ -263,3 +263,13 @@ def test_reach_candidates_vectorised_for_large_swarms(dim):
         for j in range(128):
             gap = np.max(np.abs(states[i, :dim] - states[j, :dim]))
             assert candidates[i, j] == (i != j and gap < limit + reach[i] + reach[j])
+
+
+@pytest.mark.parametrize(
+    ("collision", "margin", "expected"),
+    [("hard", None, 0.2), ("soft", None, 0.5), ("hard", 0.7, 0.7), ("soft", 0.0, 0.0)],
+)
+def test_coupling_margin_follows_the_collision_form_unless_set(collision, margin, expected):
+    scn = builtin_scenario("paper-2d").with_updates(collision=collision, **{"solver.coupling_margin": margin})
+    solver = make_solver(scn, OCPSettings.from_scenario(scn))
+    assert solver.config.coupling_margin == pytest.approx(expected)

@@ -167,10 +167,11 @@ class SolverConfig(_Frozen):
     max_iter: int = Field(default=100, ge=1, description="ADMM iteration cap per MPC step")
     tol: float = Field(default=1e-3, gt=0, description="ADMM primal/dual residual tolerance")
     adaptive_rho: bool = Field(default=False, description="residual balancing of rho")
-    coupling_margin: float = Field(
-        default=0.5, ge=0,
+    coupling_margin: float | None = Field(
+        default=None, ge=0,
         description="ADMM couples pairs whose guesses come within delta + d_min + this [m]; "
-        "others are coupled on demand (smaller: less work in dense swarms)",
+        "others are coupled on demand (smaller: less work in dense swarms); "
+        "null: 0.2 with hard constraints, 0.5 with soft ones",
     )
     initial_guess: Literal["auto", "rrt", "straight", "shifted"] = "auto"
     rrt_time_budget: float = Field(default=0.05, gt=0, description="seconds per RRT plan")

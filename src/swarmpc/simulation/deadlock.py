@@ -11,8 +11,8 @@ point of the segment from the agent to its goal is, on every axis, closer to the
 the clearance (delta + d_min) plus ``corridor_margin``. A neighbour merely nearby is not a jam: in a
 dense swarm every agent has parked neighbours within a metre, and an agent that overshot a free
 goal at the paper's weights (it passes it at ~0.1 m/s, then brakes at a few cm/s²) was detoured
-again and again, circling its goal until the step cap (random 3D, M = 32: four agents in two of
-four runs; docs/reliability.md).
+again and again, circling its goal until the step cap (random 3D, M = 32: one agent in each of
+seeds 1 and 3, 11 and 9 detours; docs/reliability.md).
 
 An agent within ``approach_radius`` of its goal that still gets closer by ``min_progress`` per
 step is approaching, not jammed, however slowly: with the paper's weights the last metre to the

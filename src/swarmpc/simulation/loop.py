@@ -16,7 +16,7 @@ from swarmpc.simulation.deadlock import DeadlockResolver
 from swarmpc.simulation.disturbance import DisturbanceModel, planner_delta
 from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.simulation.results import RunResult, StepRecord
-from swarmpc.solvers.admm import ADMMConfig, ADMMSolver
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, default_coupling_margin
 from swarmpc.solvers.base import PlanStep
 from swarmpc.solvers.centralized import CentralizedSolver
 from swarmpc.solvers.executors import Executor
@@ -39,7 +39,10 @@ def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None 
     config = ADMMConfig(
         rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
         adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
-        coupling_margin=scn.solver.coupling_margin,
+        coupling_margin=(
+            default_coupling_margin(scn.collision) if scn.solver.coupling_margin is None
+            else scn.solver.coupling_margin
+        ),
     )
     return ADMMSolver(settings, scn.num_agents, delta, config, executor)
 
