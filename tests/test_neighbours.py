@@ -267,9 +267,24 @@ def test_reach_candidates_vectorised_for_large_swarms(dim):
 
 @pytest.mark.parametrize(
     ("collision", "margin", "expected"),
-    [("hard", None, 0.2), ("soft", None, 0.5), ("hard", 0.7, 0.7), ("soft", 0.0, 0.0)],
+    [("hard", None, (0.2, 0.1)), ("soft", None, (0.5, 0.0)), ("hard", 0.7, (0.7, 0.0)), ("soft", 0.0, (0.0, 0.0))],
 )
 def test_coupling_margin_follows_the_collision_form_unless_set(collision, margin, expected):
     scn = builtin_scenario("paper-2d").with_updates(collision=collision, **{"solver.coupling_margin": margin})
     solver = make_solver(scn, OCPSettings.from_scenario(scn))
-    assert solver.config.coupling_margin == pytest.approx(expected)
+    assert (solver.config.coupling_margin, solver.config.closing_time) == pytest.approx(expected)
+
+
+def test_pairs_closing_in_fast_couple_from_farther_away():
+    scn = builtin_scenario("paper-2d")
+    settings = OCPSettings.from_scenario(scn)
+    N = settings.horizon
+    # two agents 1.0 m apart on x, closing at 1 m/s each, held at that distance over the horizon
+    guess = np.zeros((2, N + 1, 4))
+    guess[0, :, 0], guess[1, :, 0] = -0.5, 0.5
+    guess[0, :, 2], guess[1, :, 2] = 1.0, -1.0
+    # gap 1.0 m: beyond 0.3 + 0.05 + 0.2, within that plus 0.3 s x 2 m/s
+    slow = ADMMSolver(settings, 2, np.full(2, 0.3), ADMMConfig(coupling_margin=0.2))
+    fast = ADMMSolver(settings, 2, np.full(2, 0.3), ADMMConfig(coupling_margin=0.2, closing_time=0.3))
+    assert slow.neighbours(guess) == [(), ()]
+    assert fast.neighbours(guess) == [(1,), (0,)]

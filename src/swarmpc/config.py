@@ -171,7 +171,7 @@ class SolverConfig(_Frozen):
         default=None, ge=0,
         description="ADMM couples pairs whose guesses come within delta + d_min + this [m]; "
         "others are coupled on demand (smaller: less work in dense swarms); "
-        "null: 0.2 with hard constraints, 0.5 with soft ones",
+        "null: 0.2 plus 0.1 s times the pair's closing speed with hard constraints, 0.5 with soft ones",
     )
     initial_guess: Literal["auto", "rrt", "straight", "shifted"] = "auto"
     rrt_time_budget: float = Field(default=0.05, gt=0, description="seconds per RRT plan")

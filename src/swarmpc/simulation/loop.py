@@ -16,7 +16,7 @@ from swarmpc.simulation.deadlock import DeadlockResolver
 from swarmpc.simulation.disturbance import DisturbanceModel, planner_delta
 from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.simulation.results import RunResult, StepRecord
-from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, default_coupling_margin
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, default_coupling
 from swarmpc.solvers.base import PlanStep
 from swarmpc.solvers.centralized import CentralizedSolver
 from swarmpc.solvers.executors import Executor
@@ -36,13 +36,13 @@ def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None 
     delta = planner_delta(scn)
     if scn.solver.method == "centralized":
         return CentralizedSolver(settings, scn.num_agents, delta, scn.solver.seed_duals)
+    margin, closing_time = default_coupling(scn.collision)
+    if scn.solver.coupling_margin is not None:  # the scenario's margin, as given
+        margin, closing_time = scn.solver.coupling_margin, 0.0
     config = ADMMConfig(
         rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
         adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
-        coupling_margin=(
-            default_coupling_margin(scn.collision) if scn.solver.coupling_margin is None
-            else scn.solver.coupling_margin
-        ),
+        coupling_margin=margin, closing_time=closing_time,
     )
     return ADMMSolver(settings, scn.num_agents, delta, config, executor)
 
