@@ -27,6 +27,7 @@ import numpy as np
 
 from swarmpc.formulation.nlp import CompiledNLP, NLPSolution, shift_blocks
 from swarmpc.formulation.ocp import OCPSettings, build_local
+from swarmpc.model.geometry import box_exterior_distance
 from swarmpc.solvers.base import PlanStep, fallback_plan
 from swarmpc.solvers.executors import Executor, SerialExecutor
 from swarmpc.solvers.guesses import agent_guess_blocks, inputs_from_states, pair_guess_blocks
@@ -619,8 +620,7 @@ class ADMMSolver:
         if first.size == 0:
             return True
         own = np.array([r.own for r in results])  # (M, d, K)
-        excess = np.abs(own[first] - own[second]) - np.asarray(self.delta, float).reshape(-1, 1)
-        outside = np.linalg.norm(np.maximum(excess, 0.0), axis=1)
+        outside = box_exterior_distance(own[first] - own[second], np.asarray(self.delta, float).reshape(-1, 1), axis=1)
         # an RMS consensus within tol still lets single steps of two own plans differ from the
         # copies by more: half of d_min is kept as the margin, contact is at 0
         return bool(np.all(outside >= 0.5 * self.settings.d_min))
@@ -876,8 +876,7 @@ class ADMMSolver:
         limit = self.settings.d_min + margin
 
         def near(a: np.ndarray, b: np.ndarray) -> bool:
-            excess = np.abs(a - b) - half
-            return bool(np.linalg.norm(np.maximum(excess, 0.0), axis=0).min() < limit)
+            return bool(box_exterior_distance(a - b, half, axis=0).min() < limit)
 
         for r in results:
             for slot, j in enumerate(neighbours[r.agent]):
