@@ -39,6 +39,13 @@ def test_plan_runs_centralised_only_up_to_its_size_limit():
     assert sum(c.family == "circle" and c.method == "admm" for c in cases) == 2  # deterministic: one run
 
 
+def test_first_seed_shifts_the_random_seeds_only():
+    cases = plan_cases(["random", "circle"], [8], seeds=2, executor="serial", workers=None,
+                       budget_s=60.0, central_max_agents=0, first_seed=3)
+    assert sorted(c.seed for c in cases if c.family == "random") == [3, 4]
+    assert [c.seed for c in cases if c.family == "circle"] == [0]
+
+
 def test_aggregate_rates_and_cost_gap():
     rows = aggregate([
         outcome("random", 4, 0, "admm", 110.0), outcome("random", 4, 1, "admm", 90.0, reached=False, collisions=2),

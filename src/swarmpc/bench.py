@@ -120,13 +120,15 @@ def run_case(case: BenchCase) -> CaseOutcome:
 
 def plan_cases(
     families: Iterable[str], sizes: Iterable[int], seeds: int, executor: str, workers: int | None,
-    budget_s: float, central_max_agents: int, max_steps: int | None = None,
+    budget_s: float, central_max_agents: int, max_steps: int | None = None, first_seed: int = 0,
 ) -> list[BenchCase]:
-    """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed)."""
+    """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed).
+    The random family runs seeds ``first_seed`` … ``first_seed + seeds - 1``, so a long study can
+    be split over machines or sessions without repeating a seed."""
     cases = []
     for family in families:
         for m in sizes:
-            for seed in range(seeds if family == "random" else 1):
+            for seed in (range(first_seed, first_seed + seeds) if family == "random" else range(1)):
                 cases.append(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps))
                 if m <= central_max_agents:
                     cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps))
@@ -210,6 +212,7 @@ def run_bench(
     central_max_agents: int = 16,
     max_steps: int | None = None,
     log: Callable[[str], None] = lambda _line: None,
+    first_seed: int = 0,
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
 
@@ -222,7 +225,7 @@ def run_bench(
     sizes = tuple(sizes or (QUICK_SIZES if quick else FULL_SIZES))
     seeds = seeds or (1 if quick else 5)
     cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
-                       min(central_max_agents, 4) if quick else central_max_agents, max_steps)
+                       min(central_max_agents, 4) if quick else central_max_agents, max_steps, first_seed)
     jobs = jobs or (1 if executor != "serial" else available_cores())
     outcomes: list[CaseOutcome] = []
     started = time.perf_counter()

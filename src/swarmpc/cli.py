@@ -372,6 +372,7 @@ def bench(
     families: Annotated[str, typer.Option(help="comma-separated: circle, sphere, random")] = "circle,sphere,random",
     sizes: Annotated[str | None, typer.Option(help="comma-separated swarm sizes [4,8,16,32,64]")] = None,
     seeds: Annotated[int | None, typer.Option(min=1, help="seeds of the random family [5; quick 1]")] = None,
+    first_seed: Annotated[int, typer.Option(min=0, help="first seed of the random family")] = 0,
     jobs: Annotated[int | None, typer.Option(min=1, help="cases side by side [cores; 1 with a parallel executor]")] = None,
     executor: Annotated[ExecutorName, typer.Option(help="where each ADMM case's local solves run")] = ExecutorName.serial,
     workers: Annotated[int | None, typer.Option(min=1, help="process-pool size / Ray actors")] = None,
@@ -393,7 +394,7 @@ def bench(
             out, quick=quick, families=[f.strip() for f in families.split(",") if f.strip()],
             sizes=size_list, seeds=seeds, jobs=jobs, executor=executor.value, workers=workers,
             budget_s=budget, central_max_agents=central_max_agents, max_steps=max_steps,
-            log=lambda line: typer.echo(line, err=True),
+            log=lambda line: typer.echo(line, err=True), first_seed=first_seed,
         )
     except ValueError as err:
         fail(f"--{str(err).splitlines()[0]}")
