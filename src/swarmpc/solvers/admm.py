@@ -581,12 +581,9 @@ class ADMMSolver:
         reach = float(np.max(self.delta)) + self.settings.d_min + self.config.coupling_margin
         positions = guess[:, first:, :d]
         gaps = np.max(np.abs(positions[:, None] - positions[None, :]), axis=3).min(axis=2)
-        if self.config.closing_time > 0:
-            velocities = guess[:, :, d: 2 * d]
-            closing = np.max(np.abs(velocities[:, None] - velocities[None, :]), axis=(2, 3))
-            coupled = gaps < reach + self.config.closing_time * closing
-        else:
-            coupled = gaps < reach
+        velocities = guess[:, :, d: 2 * d]
+        closing = np.max(np.abs(velocities[:, None] - velocities[None, :]), axis=(2, 3))
+        coupled = gaps < reach + self.config.closing_time * closing
         if candidates is not None:
             coupled &= candidates
         np.fill_diagonal(coupled, False)
@@ -620,7 +617,8 @@ class ADMMSolver:
         if first.size == 0:
             return True
         own = np.array([r.own for r in results])  # (M, d, K)
-        outside = box_exterior_distance(own[first] - own[second], np.asarray(self.delta, float).reshape(-1, 1), axis=1)
+        half = np.asarray(self.delta, float).reshape(-1, 1)
+        outside = box_exterior_distance(own[first] - own[second], half, axis=1)
         # an RMS consensus within tol still lets single steps of two own plans differ from the
         # copies by more: half of d_min is kept as the margin, contact is at 0
         return bool(np.all(outside >= 0.5 * self.settings.d_min))
