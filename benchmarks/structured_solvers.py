@@ -29,7 +29,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from swarmpc.formulation.ocp import IPOPT_OPTIONS, WARM_START_OPTIONS, OCPSettings
+from swarmpc.formulation.ocp import LOCAL_IPOPT_OPTIONS, WARM_START_OPTIONS, OCPSettings
 from swarmpc.model.dynamics import discrete_matrices
 from swarmpc.scenarios import builtin_scenario
 
@@ -144,8 +144,8 @@ def measure(s: OCPSettings, copies: int, repeats: int, rng: np.random.Generator)
     sqp = {"print_header": False, "print_iteration": False, "print_status": False, "print_time": False,
            "expand": True, "max_iter": 50, "convexify_strategy": "regularize"}
     builders = {
-        "ipopt": lambda: ca.nlpsol("ipopt_cold", "ipopt", problem, dict(IPOPT_OPTIONS)),
-        "ipopt warm": lambda: ca.nlpsol("ipopt_warm", "ipopt", problem, {**IPOPT_OPTIONS, **WARM_START_OPTIONS}),
+        "ipopt": lambda: ca.nlpsol("ipopt_cold", "ipopt", problem, dict(LOCAL_IPOPT_OPTIONS)),
+        "ipopt warm": lambda: ca.nlpsol("ipopt_warm", "ipopt", problem, {**LOCAL_IPOPT_OPTIONS, **WARM_START_OPTIONS}),
         "fatrop": lambda: ca.nlpsol("fatrop", "fatrop", problem, {
             "expand": True, "print_time": False, "structure_detection": "manual", **structure,
             "fatrop": {"print_level": 0, "tol": 1e-6}}),

@@ -166,3 +166,63 @@ def test_skipping_unchanged_lone_problems_keeps_the_plans():
     assert full.admm_iterations > 1 and fewer < more
     assert skipped.admm_iterations == full.admm_iterations
     assert np.allclose(skipped.states, full.states, atol=1e-5)
+
+
+def _coupled_request(scn, s, guess, z_shift: float, new_step: bool) -> LocalRequest:
+    """Agent 0 coupled with agent 2 (they meet mid-way), consensus targets shifted by ``z_shift``."""
+    d, first = s.dim, s.first_constrained_step
+    states = scn.start_states()
+    return LocalRequest(
+        agent=0, state=states[0], goal=scn.goal_states()[0], delta=scn.delta_vector, rho=10.0, rho_previous=10.0,
+        owner_weight=5.0, new_step=new_step, z_own=guess[0][first:, :d].T + z_shift, neighbours=(2,),
+        z_neighbours=guess[2][first:, :d].T[None] + z_shift, neighbour_states=states[[2]], guess=guess[0],
+        reuse_tol=1e-4,
+    )
+
+
+def test_agent_reuses_its_answer_only_while_its_targets_stay_within_reuse_tol():
+    """Within a step, targets that moved less than reuse_tol since the last solve get the last
+    answer back without a solve, and that answer is close to the exact one; a larger move, a new
+    step or a changed penalty is solved."""
+    scn = builtin_scenario("paper-2d")
+    s = OCPSettings.from_scenario(scn)
+    guess = GuessProvider(scn, s, "straight").guesses(scn.start_states(), scn.goal_states(), None)
+    agent = LocalAgentFactory(s, 3, dynamic_copies=False, warm_start=True)(0)
+    agent._multipliers_step = lambda request: None  # keep gamma at zero: the targets are the z given
+    solves = []
+    original = agent.nlp.solve
+    agent.nlp.solve = lambda *a, **k: solves.append(1) or original(*a, **k)  # type: ignore[method-assign]
+    first = agent.solve(_coupled_request(scn, s, guess, 0.0, new_step=True))
+    assert first.success and len(solves) == 1
+    near = agent.solve(_coupled_request(scn, s, guess, 5e-5, new_step=False))
+    assert len(solves) == 1 and near.solve_time == 0.0 and np.array_equal(near.states, first.states)
+    exact = LocalAgentFactory(s, 3, dynamic_copies=False)(0).solve(_coupled_request(scn, s, guess, 5e-5, True))
+    assert np.max(np.abs(exact.own - near.own)) <= 1e-3
+    agent.solve(replace(_coupled_request(scn, s, guess, 5e-5, new_step=False), rho=20.0))
+    assert len(solves) == 2
+    agent.solve(_coupled_request(scn, s, guess, 5e-4, new_step=False))
+    assert len(solves) == 3
+    agent.solve(_coupled_request(scn, s, guess, 5e-4, new_step=True))
+    assert len(solves) == 4
+
+
+def test_reused_answers_keep_the_step_plans_with_fewer_solves():
+    """One ADMM step of a random swarm: answers reused within reuse_tol leave the plans within
+    the consensus tolerance of solving every local problem, with fewer solves."""
+    scn = builtin_scenario("random", agents=8, dim=3, seed=0)
+    s = OCPSettings.from_scenario(scn)
+    states, goals = scn.start_states(), scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+    outcomes = []
+    for reuse_tol in (1e-4, 0.0):
+        executor = SerialExecutor()
+        solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(reuse_tol=reuse_tol), executor)
+        solves = []
+        ladder = executor._agents[0].nlp
+        original = ladder.solve
+        ladder.solve = lambda *a, **k: solves.append(1) or original(*a, **k)  # type: ignore[method-assign]
+        outcomes.append((solver.plan(states, goals, guess), len(solves)))
+        solver.close()
+    (reused, fewer), (full, more) = outcomes
+    assert full.admm_iterations > 1 and fewer < more
+    assert np.max(np.abs(reused.states[:, :, :3] - full.states[:, :, :3])) <= ADMMConfig().tol
