@@ -7,7 +7,18 @@ import json
 import numpy as np
 import pytest
 
-from swarmpc.bench import BenchCase, CaseOutcome, aggregate, markdown_table, plan_cases, run_bench, run_case
+from swarmpc.bench import (
+    BenchCase,
+    CaseOutcome,
+    aggregate,
+    load_outcomes,
+    markdown_table,
+    merge_reports,
+    plan_cases,
+    run_bench,
+    run_case,
+    write_report,
+)
 
 
 def outcome(family: str, agents: int, seed: int, method: str, cost: float, reached: bool = True,
@@ -64,6 +75,8 @@ def test_real_case_recomputes_safety_from_the_trajectory():
     assert result.steps == 40 and not result.timed_out
     assert len(result.agent_step_ms) == 3 * result.steps and result.iterations
     assert result.collisions == 0 and result.min_separation_ratio >= 1.0
+    tolerance = BenchCase("random", 3, 0).scenario().stop.goal_tolerance
+    assert (not result.unreached) == result.all_reached == (result.worst_goal_distance <= tolerance + 1e-9)
 
 
 def test_run_bench_writes_table_and_json(tmp_path, monkeypatch):
@@ -93,7 +106,10 @@ class _InlinePool:
     def submit(self, fn, *args):
         from concurrent.futures import Future
         future: Future = Future()
-        future.set_result(fn(*args))
+        try:
+            future.set_result(fn(*args))
+        except Exception as err:  # a real pool hands the error over with the result
+            future.set_exception(err)
         return future
 
 
@@ -126,3 +142,58 @@ def test_bench_command_rejects_bad_options(tmp_path, args, field):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and field in lines[0] and "Traceback" not in done.stderr
     assert not (tmp_path / "b").exists()
+
+
+def test_reports_of_split_studies_merge_into_the_table_of_all_their_runs(tmp_path):
+    first = [outcome("random", 64, 0, "admm", 100.0), outcome("random", 64, 1, "admm", 90.0, reached=False)]
+    second = [CaseOutcome(**{**outcome("random", 64, 2, "admm", 80.0).__dict__, "step_ms": [30.0, 70.0],
+                             "unreached": (3, 5), "worst_goal_distance": 0.4})]
+    write_report(tmp_path / "a", first, "machine a", 10.0)
+    write_report(tmp_path / "b", second, "machine b", 20.0)
+    assert load_outcomes(tmp_path / "b") == second  # every field survives the JSON, per-step times too
+    markdown, data = merge_reports([tmp_path / "a", tmp_path / "b" / "bench.json"], tmp_path / "all")
+    (row,) = json.loads(data.read_text())["rows"]
+    assert row == aggregate(first + second)[0]
+    assert row["runs"] == 3 and row["all_reached_rate"] == pytest.approx(2 / 3)
+    assert row["step_ms_median"] == pytest.approx(20.0)  # pooled over all steps: 10, 20, 10, 20, 30, 70
+    assert "3 runs in 30 s" in markdown.read_text()
+
+
+def test_merging_the_same_case_twice_or_an_old_report_is_refused(tmp_path):
+    write_report(tmp_path / "a", [outcome("random", 8, 0, "admm", 1.0)], "m", 1.0)
+    with pytest.raises(ValueError, match="random M=8 seed=0 admm is in both"):
+        merge_reports([tmp_path / "a", tmp_path / "a"], tmp_path / "all")
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"runs": [{"case": {"family": "random", "agents": 8, "seed": 1}, "step_ms": None}]}))
+    with pytest.raises(ValueError, match="no per-step times"):
+        merge_reports([old], tmp_path / "all")
+    assert not (tmp_path / "all").exists()
+
+
+def test_a_bench_cut_short_keeps_the_runs_it_finished(tmp_path, monkeypatch):
+    def run_or_fail(case: BenchCase) -> CaseOutcome:
+        if case.seed == 1:
+            raise RuntimeError("machine lost")
+        return outcome(case.family, case.agents, case.seed, case.method, 100.0)
+
+    monkeypatch.setattr("swarmpc.bench.run_case", run_or_fail)
+    monkeypatch.setattr("swarmpc.bench.ProcessPoolExecutor", _InlinePool)
+    monkeypatch.setattr("swarmpc.bench.as_completed", list)  # finishing in the order submitted
+    with pytest.raises(RuntimeError):
+        run_bench(tmp_path, families=["random"], sizes=[4], seeds=2, central_max_agents=0)
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert [r["case"]["seed"] for r in data["runs"]] == [0] and data["planned_runs"] == 2
+    assert "1 of 2 runs" in (tmp_path / "bench.md").read_text()
+    assert not list(tmp_path.glob("*.partial"))
+
+
+def test_bench_merge_command_reports_a_bad_source_in_one_line(tmp_path):
+    from conftest import run_cli
+
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    done = run_cli("bench", "--merge", str(broken), "--out", str(tmp_path / "m"))
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    (line,) = done.stderr.strip().splitlines()
+    assert "--merge" in line and "broken.json" in line
+    assert not (tmp_path / "m").exists()

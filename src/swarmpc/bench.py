@@ -25,6 +25,7 @@ import numpy as np
 from swarmpc.config import Scenario
 from swarmpc.model.geometry import count_collisions, inf_separation_ratio
 from swarmpc.scenarios import builtin_scenario
+from swarmpc.simulation.metrics import final_goal_distance
 from swarmpc.simulation.loop import StopFlag, simulate
 from swarmpc.solvers.executors import available_cores, make_executor
 
@@ -76,6 +77,10 @@ class CaseOutcome:
     iterations: list[int]
     solver_failures: int
     wall_time_s: float
+    unreached: tuple[int, ...] = ()
+    """Agents not within the goal tolerance at the end of the run."""
+    worst_goal_distance: float = 0.0
+    """Largest final distance of an agent from its goal [m]."""
 
 
 def run_case(case: BenchCase) -> CaseOutcome:
@@ -115,6 +120,8 @@ def run_case(case: BenchCase) -> CaseOutcome:
         iterations=[int(r.admm_iterations) for r in records if r.admm_iterations is not None],
         solver_failures=int(summary["solver_failures"]),
         wall_time_s=wall,
+        unreached=tuple(i for i, done in enumerate(summary["reached"]) if not done),
+        worst_goal_distance=float(final_goal_distance(result.states, scn).max()),
     )
 
 
@@ -227,8 +234,10 @@ def run_bench(
     cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
                        min(central_max_agents, 4) if quick else central_max_agents, max_steps, first_seed)
     jobs = jobs or (1 if executor != "serial" else available_cores())
+    machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
     outcomes: list[CaseOutcome] = []
     started = time.perf_counter()
+    paths = (out / "bench.md", out / "bench.json")
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         futures = {pool.submit(run_case, case): case for case in cases}
         for done, future in enumerate(as_completed(futures), 1):
@@ -238,18 +247,74 @@ def run_bench(
             log(f"[{done}/{len(cases)}] {c.family} M={c.agents} seed={c.seed} {c.method}: "
                 f"{outcome.steps} steps, reached={outcome.all_reached}, collisions={outcome.collisions}, "
                 f"{outcome.wall_time_s:.0f} s")
-    rows = aggregate(outcomes)
+            paths = write_report(out, outcomes, machine, time.perf_counter() - started, planned=len(cases))
+    if not outcomes:
+        paths = write_report(out, outcomes, machine, time.perf_counter() - started)
+    return paths
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(text)
+    partial.replace(path)
+
+
+def write_report(
+    out: Path, outcomes: Sequence[CaseOutcome], machine: str, elapsed_s: float, planned: int | None = None,
+) -> tuple[Path, Path]:
+    """Write ``bench.md`` and ``bench.json`` for the runs so far (each file replaced whole).
+
+    The JSON keeps every run's per-step times, so reports of separate invocations can be merged
+    (:func:`merge_reports`)."""
     out.mkdir(parents=True, exist_ok=True)
-    markdown = out / "bench.md"
-    machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
-    markdown.write_text(
-        f"# swarmpc bench\n\n{len(cases)} runs in {time.perf_counter() - started:.0f} s ({machine}).\n\n"
-        + markdown_table(rows)
-    )
-    data = {"machine": machine, "rows": rows,
-            "runs": [{**asdict(o), "step_ms": None, "agent_step_ms": None, "iterations": None,
-                      "step_ms_median": _percentile(o.step_ms, 50),
+    rows = aggregate(outcomes)
+    planned = len(outcomes) if planned is None else planned
+    progress = f"{len(outcomes)} runs" if len(outcomes) == planned else f"{len(outcomes)} of {planned} runs"
+    markdown, json_path = out / "bench.md", out / "bench.json"
+    _write_atomically(markdown, f"# swarmpc bench\n\n{progress} in {elapsed_s:.0f} s ({machine}).\n\n"
+                      + markdown_table(rows))
+    data = {"machine": machine, "elapsed_s": elapsed_s, "planned_runs": planned, "rows": rows,
+            "runs": [{**asdict(o), "step_ms_median": _percentile(o.step_ms, 50),
                       "agent_ms_median": _percentile(o.agent_step_ms, 50)} for o in outcomes]}
-    json_path = out / "bench.json"
-    json_path.write_text(json.dumps(data, indent=2))
+    _write_atomically(json_path, json.dumps(data, indent=2))
     return markdown, json_path
+
+
+def load_outcomes(path: Path) -> list[CaseOutcome]:
+    """The runs of a ``bench.json`` (or of the one in folder ``path``)."""
+    path = path / "bench.json" if path.is_dir() else path
+    try:
+        runs = json.loads(path.read_text())["runs"]
+        outcomes = []
+        for run in runs:
+            if run.get("step_ms") is None:
+                raise ValueError(f"{path} holds no per-step times (written by an older swarmpc)")
+            fields = {k: v for k, v in run.items() if k in CaseOutcome.__dataclass_fields__}
+            fields["case"] = BenchCase(**run["case"])
+            fields["unreached"] = tuple(fields.get("unreached", ()))
+            outcomes.append(CaseOutcome(**fields))
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as err:
+        raise ValueError(f"{path}: not a swarmpc bench.json ({type(err).__name__}: {err})") from None
+    return outcomes
+
+
+def merge_reports(sources: Sequence[Path], out: Path) -> tuple[Path, Path]:
+    """One report from the runs of several ``bench.json`` files (e.g. seeds split over sessions
+    with ``--first-seed``); the same case in two sources is an error, not a silent pick."""
+    outcomes: list[CaseOutcome] = []
+    seen: dict[BenchCase, Path] = {}
+    machines: list[str] = []
+    elapsed = 0.0
+    for source in sources:
+        for outcome in load_outcomes(source):
+            if outcome.case in seen:
+                c = outcome.case
+                raise ValueError(f"case {c.family} M={c.agents} seed={c.seed} {c.method} is in both "
+                                 f"{seen[outcome.case]} and {source}")
+            seen[outcome.case] = source
+            outcomes.append(outcome)
+        data = json.loads((source / "bench.json" if source.is_dir() else source).read_text())
+        machines.append(str(data.get("machine", "?")))
+        elapsed += float(data.get("elapsed_s", 0.0))
+    machine = "; ".join(sorted(set(machines))) + f"; merged from {len(sources)} reports"
+    return write_report(out, outcomes, machine, elapsed)

@@ -379,9 +379,20 @@ def bench(
     budget: Annotated[float, typer.Option(min=1.0, help="wall-time budget per case [s]")] = 600.0,
     central_max_agents: Annotated[int, typer.Option(min=0, help="largest M also run centralised")] = 16,
     max_steps: Annotated[int | None, typer.Option(min=1, help="override every case's step cap")] = None,
+    merge: Annotated[list[Path] | None, typer.Option(
+        help="run nothing: one report from these earlier bench.json files or folders (repeatable)")] = None,
 ) -> None:
-    """The scaling benchmark: swarms of growing size; writes OUT/bench.md and OUT/bench.json."""
-    from swarmpc.bench import run_bench
+    """The scaling benchmark: swarms of growing size; writes OUT/bench.md and OUT/bench.json
+    (rewritten after every finished run, so a long study interrupted keeps what it measured)."""
+    from swarmpc.bench import merge_reports, run_bench
+
+    if merge:
+        try:
+            markdown, _ = merge_reports(merge, out)
+        except ValueError as err:
+            fail(f"--merge: {str(err).splitlines()[0]}")
+        typer.echo(str(markdown))
+        return
 
     try:
         size_list = [int(v) for v in sizes.split(",")] if sizes else None
