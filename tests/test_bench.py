@@ -80,7 +80,7 @@ def test_real_case_recomputes_safety_from_the_trajectory():
 
 
 def test_run_bench_writes_table_and_json(tmp_path, monkeypatch):
-    monkeypatch.setattr("swarmpc.bench.run_case", lambda case: outcome(case.family, case.agents, case.seed,
+    monkeypatch.setattr("swarmpc.bench.run_case", lambda case, runs_dir: outcome(case.family, case.agents, case.seed,
                                                                         case.method, 100.0))
     monkeypatch.setattr("swarmpc.bench.ProcessPoolExecutor", _InlinePool)
     markdown, data = run_bench(tmp_path, quick=True, families=["circle", "random"])
@@ -118,7 +118,7 @@ def test_bench_command_writes_its_table(tmp_path):
 
     out = tmp_path / "bench"
     done = run_cli("bench", "--families", "circle", "--sizes", "2", "--max-steps", "5", "--jobs", "1",
-                   "--out", str(out))
+                   "--out", str(out), "--save-runs")
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == str(out / "bench.md")
     table = (out / "bench.md").read_text()
@@ -126,6 +126,9 @@ def test_bench_command_writes_its_table(tmp_path):
     data = json.loads((out / "bench.json").read_text())
     assert {r["case"]["method"] for r in data["runs"]} == {"admm", "centralized"}
     assert all(r["steps"] == 5 and r["collisions"] == 0 for r in data["runs"])
+    saved = np.load(out / "runs" / "circle-M2-seed0-admm" / "trajectory.npz")
+    assert saved["states"].shape[:2] == (6, 2)  # the saved run is the measured one: 5 steps, 2 agents
+    assert (out / "runs" / "circle-M2-seed0-centralized" / "summary.json").exists()
 
 
 @pytest.mark.parametrize(("args", "field"), [
@@ -171,7 +174,7 @@ def test_merging_the_same_case_twice_or_an_old_report_is_refused(tmp_path):
 
 
 def test_a_bench_cut_short_keeps_the_runs_it_finished(tmp_path, monkeypatch):
-    def run_or_fail(case: BenchCase) -> CaseOutcome:
+    def run_or_fail(case: BenchCase, runs_dir: object) -> CaseOutcome:
         if case.seed == 1:
             raise RuntimeError("machine lost")
         return outcome(case.family, case.agents, case.seed, case.method, 100.0)

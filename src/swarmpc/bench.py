@@ -26,6 +26,7 @@ from swarmpc.config import Scenario
 from swarmpc.model.geometry import count_collisions, inf_separation_ratio
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.metrics import final_goal_distance
+from swarmpc.simulation.results import write_run
 from swarmpc.simulation.loop import StopFlag, simulate
 from swarmpc.solvers.executors import available_cores, make_executor
 
@@ -59,6 +60,11 @@ class BenchCase:
             updates["stop.max_steps"] = self.max_steps
         return scn.with_updates(**updates)
 
+    @property
+    def label(self) -> str:
+        """A name for the case's run folder: ``random-M64-seed1-admm``."""
+        return f"{self.family}-M{self.agents}-seed{self.seed}-{self.method}"
+
 
 @dataclass(frozen=True)
 class CaseOutcome:
@@ -83,8 +89,10 @@ class CaseOutcome:
     """Largest final distance of an agent from its goal [m]."""
 
 
-def run_case(case: BenchCase) -> CaseOutcome:
-    """Run one case in closed loop, stopping cleanly when its wall-time budget is spent."""
+
+def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
+    """Run one case in closed loop, stopping cleanly when its wall-time budget is spent; with
+    ``runs_dir``, keep its run folder (``summary.json``, ``trajectory.npz``) there too."""
     scn = case.scenario()
     options: dict[str, Any] = {}
     if case.workers and case.executor in ("process", "ray"):
@@ -99,6 +107,8 @@ def run_case(case: BenchCase) -> CaseOutcome:
     finally:
         timer.cancel()
     wall = time.perf_counter() - started
+    if runs_dir is not None:
+        write_run(result, runs_dir / case.label)
     d = scn.dim
     positions = result.states[:, :, :d]
     delta = scn.delta_vector
@@ -220,11 +230,13 @@ def run_bench(
     max_steps: int | None = None,
     log: Callable[[str], None] = lambda _line: None,
     first_seed: int = 0,
+    save_runs: bool = False,
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
 
     Cases run ``jobs`` at a time in separate processes (each case itself uses ``executor``);
-    per-step times are therefore measured with ``jobs`` runs sharing the machine.
+    per-step times are therefore measured with ``jobs`` runs sharing the machine. ``save_runs``
+    keeps every run's folder under ``out/runs``.
     """
     unknown = sorted(set(families) - set(FAMILIES))
     if unknown:
@@ -239,7 +251,7 @@ def run_bench(
     started = time.perf_counter()
     paths = (out / "bench.md", out / "bench.json")
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = {pool.submit(run_case, case): case for case in cases}
+        futures = {pool.submit(run_case, case, out / "runs" if save_runs else None): case for case in cases}
         for done, future in enumerate(as_completed(futures), 1):
             outcome = future.result()
             outcomes.append(outcome)

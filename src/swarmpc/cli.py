@@ -379,6 +379,7 @@ def bench(
     budget: Annotated[float, typer.Option(min=1.0, help="wall-time budget per case [s]")] = 600.0,
     central_max_agents: Annotated[int, typer.Option(min=0, help="largest M also run centralised")] = 16,
     max_steps: Annotated[int | None, typer.Option(min=1, help="override every case's step cap")] = None,
+    save_runs: Annotated[bool, typer.Option("--save-runs", help="keep every run's folder under OUT/runs")] = False,
     merge: Annotated[list[Path] | None, typer.Option(
         help="run nothing: one report from these earlier bench.json files or folders (repeatable)")] = None,
 ) -> None:
@@ -405,7 +406,7 @@ def bench(
             out, quick=quick, families=[f.strip() for f in families.split(",") if f.strip()],
             sizes=size_list, seeds=seeds, jobs=jobs, executor=executor.value, workers=workers,
             budget_s=budget, central_max_agents=central_max_agents, max_steps=max_steps,
-            log=lambda line: typer.echo(line, err=True), first_seed=first_seed,
+            log=lambda line: typer.echo(line, err=True), first_seed=first_seed, save_runs=save_runs,
         )
     except ValueError as err:
         fail(f"--{str(err).splitlines()[0]}")
