@@ -34,6 +34,7 @@ CASES = {
     "empty agent list": ({"agents": []}, "agents"),
     "malformed polytope": (with_(obstacles=[{"polytope": {"G": [[1, 0], [0, 1]], "g": [1]}}]), "obstacles[0]"),
     "hard with d_min 0": (with_(d_min=0), "d_min"),
+    "negative reuse tolerance": (with_(solver={"reuse_tol": -1e-4}), "solver.reuse_tol"),
     # (data, field, reason): the reason is a further substring the line must contain
     "goal inside an obstacle": (
         with_(obstacles=[{"box": {"center": [1, 1], "half_size": [0.2, 0.2]}}]), "agents[0].goal", "inside obstacles[0]"),

@@ -275,6 +275,12 @@ def test_coupling_margin_follows_the_collision_form_unless_set(collision, margin
     assert (solver.config.coupling_margin, solver.config.closing_time) == pytest.approx(expected)
 
 
+@pytest.mark.parametrize("tolerance", [0.0, 3e-4])
+def test_the_reuse_tolerance_of_the_scenario_reaches_the_solver(tolerance):
+    scn = builtin_scenario("paper-2d").with_updates(**{"solver.reuse_tol": tolerance})
+    assert make_solver(scn, OCPSettings.from_scenario(scn)).config.reuse_tol == tolerance
+
+
 def test_pairs_closing_in_fast_couple_from_farther_away():
     scn = builtin_scenario("paper-2d")
     settings = OCPSettings.from_scenario(scn)

@@ -173,6 +173,11 @@ class SolverConfig(_Frozen):
         "others are coupled on demand (smaller: less work in dense swarms); "
         "null: 0.2 plus 0.1 s times the pair's closing speed with hard constraints, 0.5 with soft ones",
     )
+    reuse_tol: float = Field(
+        default=1e-4, ge=0,
+        description="within an MPC step, an ADMM agent whose consensus targets moved less than this [m] "
+        "since its last solve sends its last answer again instead of solving (0: always solve)",
+    )
     initial_guess: Literal["auto", "rrt", "straight", "shifted"] = "auto"
     rrt_time_budget: float = Field(default=0.05, gt=0, description="seconds per RRT plan")
     seed_duals: bool = Field(

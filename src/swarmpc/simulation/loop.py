@@ -42,7 +42,7 @@ def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None 
     config = ADMMConfig(
         rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
         adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
-        coupling_margin=margin, closing_time=closing_time,
+        coupling_margin=margin, closing_time=closing_time, reuse_tol=scn.solver.reuse_tol,
     )
     return ADMMSolver(settings, scn.num_agents, delta, config, executor)
 
