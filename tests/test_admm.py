@@ -31,8 +31,9 @@ def approach_state(name: str, steps: int = 20):
     return scn, simulate(scn).states[-1]
 
 
+@pytest.mark.parametrize("relaxation", [1.0, 1.6])
 @pytest.mark.parametrize("name", ["paper-2d", "paper-3d"])
-def test_one_step_matches_centralised(name):
+def test_one_step_matches_centralised(name, relaxation):
     scn, states = approach_state(name)
     s = OCPSettings.from_scenario(scn)
     goals = scn.goal_states()
@@ -40,7 +41,7 @@ def test_one_step_matches_centralised(name):
     central = CentralizedSolver(s, scn.num_agents, scn.delta_vector).plan(states, goals, guess)
     # the paper's stopping rule (every block, both residuals; the default): consensus on the
     # global optimum
-    config = ADMMConfig(max_iter=200, engage_margin=None)
+    config = ADMMConfig(max_iter=200, engage_margin=None, relaxation=relaxation)
     admm = ADMMSolver(s, scn.num_agents, scn.delta_vector, config).plan(states, goals, guess)
     assert central.failures == 0 and admm.failures == 0 and not admm.repaired
     assert admm.primal_residuals[-1] <= 1e-3 and admm.dual_residuals[-1] <= 1e-3
@@ -137,6 +138,28 @@ def test_new_step_carries_only_consistent_multipliers(mode):
         assert carried == (mode == "always" or (mode == "stable" and i != 0))
         if mode == "stable":
             assert 0 not in agents[i]._gamma
+
+
+@pytest.mark.parametrize("relaxation", [1.0, 1.6])
+def test_each_blocks_multipliers_sum_to_zero_within_a_step(relaxation):
+    """The z-update is the weighted average of the (relaxed) answers, so the multiplier updates
+    of every block, the owner's (weighted) and its holders', cancel: ADMM's consensus invariant."""
+    scn, states = approach_state("paper-2d")
+    s = OCPSettings.from_scenario(scn)
+    guess = GuessProvider(scn, s, "straight").guesses(states, scn.goal_states(), None)
+    executor = SerialExecutor()
+    config = ADMMConfig(max_iter=6, relaxation=relaxation, carry_multipliers="never", repair=False)
+    ADMMSolver(s, scn.num_agents, scn.delta_vector, config, executor).plan(states, scn.goal_states(), guess)
+    agents = executor._agents
+    checked = 0
+    for j, owner in agents.items():
+        if owner._gamma_own is None:
+            continue
+        held = [agent._gamma[j] for agent in agents.values() if j in agent._gamma]
+        assert held and np.abs(owner._gamma_own).max() > 1e-6
+        assert np.allclose(owner._gamma_own + sum(held), 0.0, atol=1e-9)
+        checked += 1
+    assert checked >= 2
 
 
 def test_executors_give_identical_plans():

@@ -34,6 +34,7 @@ CASES = {
     "empty agent list": ({"agents": []}, "agents"),
     "malformed polytope": (with_(obstacles=[{"polytope": {"G": [[1, 0], [0, 1]], "g": [1]}}]), "obstacles[0]"),
     "hard with d_min 0": (with_(d_min=0), "d_min"),
+    "over-relaxation of 2": (with_(solver={"relaxation": 2.0}), "solver.relaxation"),
     "negative reuse tolerance": (with_(solver={"reuse_tol": -1e-4}), "solver.reuse_tol"),
     # (data, field, reason): the reason is a further substring the line must contain
     "goal inside an obstacle": (

@@ -275,10 +275,11 @@ def test_coupling_margin_follows_the_collision_form_unless_set(collision, margin
     assert (solver.config.coupling_margin, solver.config.closing_time) == pytest.approx(expected)
 
 
-@pytest.mark.parametrize("tolerance", [0.0, 3e-4])
-def test_the_reuse_tolerance_of_the_scenario_reaches_the_solver(tolerance):
-    scn = builtin_scenario("paper-2d").with_updates(**{"solver.reuse_tol": tolerance})
-    assert make_solver(scn, OCPSettings.from_scenario(scn)).config.reuse_tol == tolerance
+@pytest.mark.parametrize(("tolerance", "relaxation"), [(0.0, 1.0), (3e-4, 1.6)])
+def test_the_reuse_tolerance_and_relaxation_of_the_scenario_reach_the_solver(tolerance, relaxation):
+    scn = builtin_scenario("paper-2d").with_updates(**{"solver.reuse_tol": tolerance, "solver.relaxation": relaxation})
+    config = make_solver(scn, OCPSettings.from_scenario(scn)).config
+    assert (config.reuse_tol, config.relaxation) == (tolerance, relaxation)
 
 
 def test_pairs_closing_in_fast_couple_from_farther_away():

@@ -173,6 +173,11 @@ class SolverConfig(_Frozen):
         "others are coupled on demand (smaller: less work in dense swarms); "
         "null: 0.2 plus 0.1 s times the pair's closing speed with hard constraints, 0.5 with soft ones",
     )
+    relaxation: float = Field(
+        default=1.0, gt=0, lt=2,
+        description="ADMM over-relaxation alpha: the consensus averages alpha * answer + (1 - alpha) * "
+        "previous consensus (1: plain ADMM, as in the paper)",
+    )
     reuse_tol: float = Field(
         default=1e-4, ge=0,
         description="within an MPC step, an ADMM agent whose consensus targets moved less than this [m] "
