@@ -142,3 +142,39 @@ def test_blocking_follows_the_clearance_per_axis():
     goals = np.array([[1.0, 0.0, 1.0], [0.5, 0.0, 1.3]])
     assert not DeadlockResolver(2, 3, clearance=0.2).blocked(positions, goals)[0]
     assert DeadlockResolver(2, 3, clearance=np.array([0.2, 0.2, 0.35])).blocked(positions, goals)[0]
+
+
+def _sliding_pair(step: int) -> np.ndarray:
+    """Two agents in contact turning round their common centre at 0.1 m/s, neither closer to
+    its goal from one second to the next (what held two agents of random M = 64 for 25 s)."""
+    angle = 0.02 * np.sin(0.3 * step)
+    offset = 0.18 * np.array([np.cos(angle), np.sin(angle)])
+    velocity = np.array([0.0, 0.1 * np.sign(np.cos(0.3 * step))])
+    return np.array([[*-offset, *-velocity], [*offset, *velocity]])
+
+
+def test_a_pair_sliding_round_each_other_is_a_jam_once_progress_is_watched():
+    from swarmpc.simulation.deadlock import DeadlockPolicy
+
+    goals = np.array([[1.0, 0.0, 0, 0], [-1.0, 0.0, 0, 0]])  # each behind the other
+    speed_only = DeadlockResolver(2, 2)
+    window = 20
+    watched = DeadlockResolver(2, 2, DeadlockPolicy(progress_window=window))
+    for step in range(60):
+        speed_only.goals(step, _sliding_pair(step), goals)
+        watched.goals(step, _sliding_pair(step), goals)
+    assert speed_only.events == []  # never slower than the speed threshold
+    first = watched.policy.progress_window + watched.policy.patience - 1
+    assert sorted(watched.events)[:2] == [(first, 0), (first, 1)]
+
+
+def test_watching_progress_leaves_a_blocked_agent_that_gets_closer_alone():
+    from swarmpc.simulation.deadlock import DeadlockPolicy
+
+    resolver = DeadlockResolver(2, 2, DeadlockPolicy(progress_window=20))
+    goals = np.array([[1.0, 0.0, 0, 0], [-1.0, 0.0, 0, 0]])
+    for step in range(80):
+        # agent 0 edges round agent 1 at 0.1 m/s, 0.04 m/s of it towards its goal: slow progress
+        states = np.array([[-1.5 + 0.004 * step, 0.0, 0.1, 0.0], [-1.0, 0.0, 0.0, 0.0]])
+        resolver.goals(step, states, goals)
+    assert resolver.events == []

@@ -56,6 +56,10 @@ class DeadlockPolicy:
     jitter_deg: float = 30.0
     stretch: float = 2.0
     corridor_margin: float = 0.1
+    progress_window: int | None = None
+    """Steps over which a blocked agent must get ``window_progress`` closer to its goal, however
+    fast it moves, or count as stalled (None: only slow agents stall)."""
+    window_progress: float = 0.05
 
 
 def right_turn(direction: np.ndarray, angle: float) -> np.ndarray:
@@ -86,6 +90,7 @@ class DeadlockResolver:
         self._repeats = np.zeros(num_agents, int)
         self._rng = np.random.default_rng([seed, 0xD1])
         self._distance: np.ndarray | None = None
+        self._history: list[np.ndarray] = []
         self._stalled = np.zeros(num_agents, int)
         self._detour_left = np.zeros(num_agents, int)
         self._detour_goal: dict[int, np.ndarray] = {}
@@ -121,7 +126,13 @@ class DeadlockResolver:
         progress = self._distance - distance if self._distance is not None else np.zeros_like(distance)
         self._distance = distance
         approaching = (distance < p.approach_radius) & (progress >= p.min_progress)
-        stalled = (speeds < p.speed_threshold) & (distance > p.distance_threshold) & ~approaching
+        slow = speeds < p.speed_threshold
+        if p.progress_window is not None:
+            self._history = [*self._history[-p.progress_window:], distance]
+            if len(self._history) > p.progress_window:
+                # two agents sliding round each other in contact, never quite slow
+                slow |= blocked & (distance > self._history[0] - p.window_progress)
+        stalled = slow & (distance > p.distance_threshold) & ~approaching
         stalled &= blocked | (distance > p.approach_radius)
         self._stalled = np.where(stalled, self._stalled + 1, 0)
         due = np.where(blocked, self._stalled >= p.patience, self._stalled >= p.lonely_patience)
