@@ -39,6 +39,10 @@ def test_case_scenarios_follow_the_benchmark_definition():
     sphere = BenchCase("sphere", 8, 0, method="centralized").scenario()
     assert sphere.dim == 3 and sphere.solver.method == "centralized"
     assert sphere.limits.accel is not None and sphere.stop.goal_tolerance == pytest.approx(0.1)
+    spread = BenchCase("spread", 64, 2).scenario()
+    lower, upper = spread.bounds()
+    assert spread.num_agents == 64 and spread.seed == 2 and spread.limits.accel is not None
+    assert np.allclose(upper - lower, [6.0, 6.0, 4.0], atol=1e-3)  # 8 agents per 3 x 3 x 2 m
 
 
 def test_plan_runs_centralised_only_up_to_its_size_limit():
@@ -51,9 +55,10 @@ def test_plan_runs_centralised_only_up_to_its_size_limit():
 
 
 def test_first_seed_shifts_the_random_seeds_only():
-    cases = plan_cases(["random", "circle"], [8], seeds=2, executor="serial", workers=None,
+    cases = plan_cases(["random", "circle", "spread"], [8], seeds=2, executor="serial", workers=None,
                        budget_s=60.0, central_max_agents=0, first_seed=3)
     assert sorted(c.seed for c in cases if c.family == "random") == [3, 4]
+    assert sorted(c.seed for c in cases if c.family == "spread") == [3, 4]
     assert [c.seed for c in cases if c.family == "circle"] == [0]
 
 

@@ -50,6 +50,22 @@ def test_random_goals_and_starts_leave_room_for_the_separation(seed, agents):
                 assert point_box_distance(points[i] - points[j], scn.delta_vector) >= 0.1 - 1e-3
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_spread_keeps_the_density_of_eight_agents_in_the_random_box(dim):
+    base = builtin_scenario("random", agents=8, dim=dim, seed=1)
+    lower, upper = base.bounds()
+    room = np.prod(upper - lower) / 8
+    for agents in (4, 16, 64):
+        scn = builtin_scenario("spread", agents=agents, dim=dim, seed=1)
+        lower, upper = scn.bounds()
+        assert np.prod(upper - lower) / agents == pytest.approx(room, rel=1e-3)
+        points = np.vstack([scn.start_states()[:, :dim], scn.goal_states()[:, :dim]])
+        assert np.all(points >= lower) and np.all(points <= upper)
+        assert scn.name.startswith("spread") and scn.stop.max_steps >= 600
+    # the floor stays where drones take off; the box grows upwards
+    assert builtin_scenario("spread", agents=64, seed=1).bounds()[0][2] == pytest.approx(0.2)
+
+
 def test_scenarios_command_lists_every_builtin():
     from conftest import run_cli
 

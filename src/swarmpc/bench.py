@@ -1,9 +1,10 @@
 """The scaling benchmark behind ``swarmpc bench``: swarms of growing size, one table.
 
 Families (all with Δ = 0.3 and the paper's weights): ``circle`` (2D antipodal swap), ``sphere``
-(3D antipodal swap) and ``random`` (3D, seeded starts and goals in a 3 x 3 x 2 m box, >= 0.5 m
+(3D antipodal swap), ``random`` (3D, seeded starts and goals in a 3 x 3 x 2 m box, >= 0.5 m
 apart and >= 0.1 m from each other's delta box, acceleration <= 1 m/s² per axis, goal tolerance
-0.1 m). Each case is one closed-loop run in its own process; collisions and separations come from
+0.1 m) and ``spread`` (``random`` at constant density: the box grows as (M / 8)^(1/3) per side, so
+neighbourhoods stay the size they have at M = 8 and the work per agent can be read against M alone). Each case is one closed-loop run in its own process; collisions and separations come from
 the run's trajectory, never from a flag.
 Numbers are wall-clock measurements on whatever machine runs it: read them as such.
 """
@@ -30,7 +31,9 @@ from swarmpc.simulation.results import write_run
 from swarmpc.simulation.loop import StopFlag, simulate
 from swarmpc.solvers.executors import available_cores, make_executor
 
-FAMILIES = ("circle", "sphere", "random")
+FAMILIES = ("circle", "sphere", "random", "spread")
+SEEDED_FAMILIES = ("random", "spread")
+DEFAULT_FAMILIES = ("circle", "sphere", "random")
 FULL_SIZES = (4, 8, 16, 32, 64)
 QUICK_SIZES = (4, 8)
 
@@ -50,8 +53,8 @@ class BenchCase:
 
     def scenario(self) -> Scenario:
         """The case's scenario (built-in generators; see the module docstring)."""
-        if self.family == "random":
-            scn = builtin_scenario("random", agents=self.agents, dim=3, seed=self.seed)
+        if self.family in SEEDED_FAMILIES:
+            scn = builtin_scenario(self.family, agents=self.agents, dim=3, seed=self.seed)
         else:
             scn = builtin_scenario("circle", agents=self.agents, dim=2 if self.family == "circle" else 3)
             scn = scn.with_updates(**{"limits.accel": 1.0, "stop.goal_tolerance": 0.1, "seed": self.seed})
@@ -140,12 +143,12 @@ def plan_cases(
     budget_s: float, central_max_agents: int, max_steps: int | None = None, first_seed: int = 0,
 ) -> list[BenchCase]:
     """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed).
-    The random family runs seeds ``first_seed`` … ``first_seed + seeds - 1``, so a long study can
-    be split over machines or sessions without repeating a seed."""
+    The random and spread families run seeds ``first_seed`` … ``first_seed + seeds - 1``, so a long
+    study can be split over machines or sessions without repeating a seed."""
     cases = []
     for family in families:
         for m in sizes:
-            for seed in (range(first_seed, first_seed + seeds) if family == "random" else range(1)):
+            for seed in (range(first_seed, first_seed + seeds) if family in SEEDED_FAMILIES else range(1)):
                 cases.append(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps))
                 if m <= central_max_agents:
                     cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps))
@@ -219,7 +222,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
 def run_bench(
     out: Path,
     quick: bool = False,
-    families: Sequence[str] = FAMILIES,
+    families: Sequence[str] = DEFAULT_FAMILIES,
     sizes: Sequence[int] | None = None,
     seeds: int | None = None,
     jobs: int | None = None,

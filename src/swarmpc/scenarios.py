@@ -71,8 +71,12 @@ def circle(agents: int = 8, dim: int = 2, radius: float | None = None, delta: fl
 
 
 def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.3,
-                 min_gap: float = 0.5, clearance: float = 0.1, **_: Any) -> dict[str, Any]:
+                 min_gap: float = 0.5, clearance: float = 0.1, box_scale: float = 1.0,
+                 **_: Any) -> dict[str, Any]:
     """Seeded random starts and goals in a 3 x 3 (x 2) m box, pairwise >= ``min_gap`` apart.
+
+    ``box_scale`` stretches every side of the box (the floor stays at z = 0.2) and the step cap
+    with it, since the paths grow as long.
 
     Every pair also leaves ``clearance`` (Euclidean) between one point and the other's delta box:
     two goals closer than the OBCA separation d_min (0.05 m by default) can never both be held, and
@@ -80,8 +84,8 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
     the box).
     """
     rng = np.random.default_rng(seed)
-    lower = np.array([-1.5, -1.5, 0.2][:dim])
-    upper = np.array([1.5, 1.5, 2.2][:dim])
+    lower = np.array([-1.5 * box_scale, -1.5 * box_scale, 0.2][:dim])
+    upper = np.array([1.5 * box_scale, 1.5 * box_scale, 0.2 + 2.0 * box_scale][:dim])
 
     def spaced(p: np.ndarray, q: np.ndarray) -> bool:
         return bool(np.linalg.norm(p - q) >= min_gap and point_box_distance(p - q, delta) >= clearance)
@@ -99,10 +103,26 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
     starts, goals = sample(), sample()
     return {"name": f"random-{dim}d-{agents}-s{seed}", "dim": dim, **PAPER, "delta": delta,
             "seed": seed, "limits": {"accel": 1.0},
-            "workspace": {"lower": lower.tolist(), "upper": upper.tolist()},
+            "workspace": {"lower": lower.round(4).tolist(), "upper": upper.round(4).tolist()},
             "agents": [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()}
                        for s, g in zip(starts, goals)],
-            "stop": {"goal_tolerance": 0.1, "max_steps": 600}}
+            "stop": {"goal_tolerance": 0.1, "max_steps": int(np.ceil(600 * max(box_scale, 1.0)))}}
+
+
+SPREAD_DENSITY_AGENTS = 8
+"""The ``spread`` family keeps the density of ``random`` with this many agents."""
+
+
+def spread_swarm(agents: int = 16, dim: int = 3, seed: int = 0, delta: float = 0.3, **_: Any) -> dict[str, Any]:
+    """``random`` at a constant density: the box grows with the swarm so that every agent has the
+    room it has in the 3 x 3 x 2 m box with 8 agents (side x (M / 8)^(1/d)).
+
+    A fixed box gets denser as M grows, and every agent's neighbourhood with it; this family holds
+    the neighbourhoods steady, so it shows how the solver's work grows with M alone.
+    """
+    scale = (agents / SPREAD_DENSITY_AGENTS) ** (1.0 / dim)
+    spec = random_swarm(agents=agents, dim=dim, seed=seed, delta=delta, box_scale=scale)
+    return {**spec, "name": f"spread-{dim}d-{agents}-s{seed}"}
 
 
 def wall_door(delta: float = 0.2, **_: Any) -> dict[str, Any]:
@@ -144,6 +164,7 @@ BUILTINS: dict[str, tuple[Callable[..., dict[str, Any]], str]] = {
     "paper-3d": (paper_3d, "the paper's 3D experiment: 4 drones swap diagonal corners of a 3 m cube"),
     "circle": (circle, "M agents on a circle swap antipodally (--agents M; dim 3: a sphere)"),
     "random": (random_swarm, "seeded random starts and goals in a 3 x 3 x 2 m box (--agents, --seed)"),
+    "spread": (spread_swarm, "random at constant density: the box grows with --agents (8 agents per 3 x 3 x 2 m)"),
     "wall-door": (wall_door, "two agents swap sides through the door of a wall"),
     "pillars": (pillars, "four agents cross a 3 x 3 field of pillars"),
     "u-trap": (u_trap, "a U-shaped trap in front of the goal; the straight line leads into it"),
