@@ -6,11 +6,14 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from swarmpc.bench import (
     BenchCase,
     CaseOutcome,
     aggregate,
+    growth_exponents,
     load_outcomes,
     markdown_table,
     merge_reports,
@@ -73,6 +76,27 @@ def test_aggregate_rates_and_cost_gap():
     assert row["agent_ms_median"] == pytest.approx(4.0) and row["iterations_max"] == 3
     table = markdown_table(rows)
     assert "| random | 4 | 2 | 50% | 50% |" in table and "+10.0%" in table
+
+
+@given(k_step=st.floats(0.0, 3.0), k_agent=st.floats(-1.0, 2.0), scale=st.floats(0.1, 100.0))
+@settings(max_examples=25, deadline=None)
+def test_growth_exponent_recovers_a_power_law(k_step, k_agent, scale):
+    rows = [{"family": "spread", "agents": m, "step_ms_median": scale * m**k_step,
+             "agent_ms_median": scale * m**k_agent} for m in (4, 8, 16, 32, 64)]
+    rows.append({"family": "circle", "agents": 4, "step_ms_median": 1.0, "agent_ms_median": None})
+    growth = growth_exponents(rows)
+    assert set(growth) == {"spread"}  # one size is no fit
+    assert growth["spread"]["step"] == pytest.approx(k_step, abs=1e-6)
+    assert growth["spread"]["agent"] == pytest.approx(k_agent, abs=1e-6)
+    assert growth["spread"]["sizes"] == [4, 8, 16, 32, 64]
+
+
+def test_report_states_the_growth(tmp_path):
+    runs = [CaseOutcome(**{**outcome("random", m, 0, "admm", 1.0).__dict__, "step_ms": [float(m * m)],
+                           "agent_step_ms": [float(m)]}) for m in (4, 8, 16)]
+    markdown, data = write_report(tmp_path, runs, "test", 1.0)
+    assert "random (M = 4…16, medians): per-step wall time ~ M^2.00, per-agent compute ~ M^1.00" in markdown.read_text()
+    assert json.loads(data.read_text())["growth"]["random"]["step"] == pytest.approx(2.0)
 
 
 def test_real_case_recomputes_safety_from_the_trajectory():

@@ -191,6 +191,40 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
     return rows
 
 
+def growth_exponents(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per family with two sizes or more: k in time ~ M^k, the least-squares slope of
+    log(median) against log(M), for the per-step wall time and the per-agent compute.
+
+    k <= 1 for the step time is "no worse than linear in M"; the per-agent k says how the work of
+    one agent grows with the swarm (0 when neighbourhoods do not grow).
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for family in dict.fromkeys(r["family"] for r in rows):
+        exponents: dict[str, Any] = {}
+        for key, name in (("step_ms_median", "step"), ("agent_ms_median", "agent")):
+            points = [(r["agents"], r[key]) for r in rows
+                      if r["family"] == family and r[key] is not None and r[key] > 0]
+            if len({m for m, _ in points}) >= 2:
+                log_m, log_t = np.log([m for m, _ in points]), np.log([t for _, t in points])
+                exponents[name] = float(np.polyfit(log_m, log_t, 1)[0])
+                exponents["sizes"] = sorted(m for m, _ in points)
+        if exponents:
+            out[family] = exponents
+    return out
+
+
+def growth_lines(growth: dict[str, dict[str, Any]]) -> str:
+    """One sentence per family for the markdown report."""
+    lines = []
+    for family, g in growth.items():
+        sizes = g["sizes"]
+        parts = [f"per-step wall time ~ M^{g['step']:.2f}" if "step" in g else None,
+                 f"per-agent compute ~ M^{g['agent']:.2f}" if "agent" in g else None]
+        lines.append(f"* {family} (M = {sizes[0]}…{sizes[-1]}, medians): "
+                     + ", ".join(p for p in parts if p))
+    return "\n".join(lines) + "\n" if lines else ""
+
+
 def _cell(value: Any, fmt: str = "{:.1f}") -> str:
     if value is None:
         return "-"
@@ -286,9 +320,11 @@ def write_report(
     planned = len(outcomes) if planned is None else planned
     progress = f"{len(outcomes)} runs" if len(outcomes) == planned else f"{len(outcomes)} of {planned} runs"
     markdown, json_path = out / "bench.md", out / "bench.json"
+    growth = growth_exponents(rows)
+    fits = f"\nGrowth with the swarm size (least-squares fit on log-log):\n\n{growth_lines(growth)}" if growth else ""
     _write_atomically(markdown, f"# swarmpc bench\n\n{progress} in {elapsed_s:.0f} s ({machine}).\n\n"
-                      + markdown_table(rows))
-    data = {"machine": machine, "elapsed_s": elapsed_s, "planned_runs": planned, "rows": rows,
+                      + markdown_table(rows) + fits)
+    data = {"machine": machine, "elapsed_s": elapsed_s, "planned_runs": planned, "rows": rows, "growth": growth,
             "runs": [{**asdict(o), "step_ms_median": _percentile(o.step_ms, 50),
                       "agent_ms_median": _percentile(o.agent_step_ms, 50)} for o in outcomes]}
     _write_atomically(json_path, json.dumps(data, indent=2))
