@@ -209,3 +209,8 @@ def test_admm_closed_loop(admm_run):
     with np.load(out / "admm.npz") as admm:
         assert admm["primal"].shape[0] == summary["steps"]
         assert np.all(admm["iterations"] >= 1)
+        copies = admm["copies"]
+        m = summary["num_agents"]
+        assert copies.shape == (summary["steps"], m) and copies.min() >= 0 and copies.max() <= m - 1
+        assert np.all(copies.sum(axis=1) % 2 == 0)  # coupling is symmetric: a copy held each way
+        assert copies.max() >= 1  # the swap meets in the middle, where the agents couple

@@ -74,8 +74,14 @@ def test_aggregate_rates_and_cost_gap():
     assert row["runs"] == 2 and row["all_reached_rate"] == 0.5 and row["collision_free_rate"] == 0.5
     assert row["cost_gap_pct_median"] == pytest.approx(10.0)  # only seeds where both reached
     assert row["agent_ms_median"] == pytest.approx(4.0) and row["iterations_max"] == 3
+    assert row["copies_mean"] is None  # none recorded
     table = markdown_table(rows)
     assert "| random | 4 | 2 | 50% | 50% |" in table and "+10.0%" in table
+    with_copies = [CaseOutcome(**{**outcome("random", 8, seed, "admm", 1.0).__dict__, "copies_mean": held})
+                   for seed, held in ((0, 1.0), (1, 2.0))]
+    (row,) = aggregate(with_copies + [outcome("random", 8, 2, "admm", 1.0)])
+    assert row["copies_mean"] == pytest.approx(1.5)  # runs that recorded none do not count
+    assert markdown_table([row]).rstrip().endswith("| 1.50 |")
 
 
 @given(k_step=st.floats(0.0, 3.0), k_agent=st.floats(-1.0, 2.0), scale=st.floats(0.1, 100.0))
@@ -102,6 +108,7 @@ def test_report_states_the_growth(tmp_path):
 def test_real_case_recomputes_safety_from_the_trajectory():
     result = run_case(BenchCase("random", 3, 0, max_steps=40))
     assert result.steps == 40 and not result.timed_out
+    assert result.copies_mean is not None and 0.0 <= result.copies_mean <= 2.0  # at most the 2 others
     assert len(result.agent_step_ms) == 3 * result.steps and result.iterations
     assert result.collisions == 0 and result.min_separation_ratio >= 1.0
     tolerance = BenchCase("random", 3, 0).scenario().stop.goal_tolerance

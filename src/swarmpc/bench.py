@@ -27,7 +27,7 @@ from swarmpc.config import Scenario
 from swarmpc.model.geometry import count_collisions, inf_separation_ratio
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.metrics import final_goal_distance
-from swarmpc.simulation.results import write_run
+from swarmpc.simulation.results import StepRecord, write_run
 from swarmpc.simulation.loop import StopFlag, simulate
 from swarmpc.solvers.executors import available_cores, make_executor
 
@@ -90,6 +90,9 @@ class CaseOutcome:
     """Agents not within the goal tolerance at the end of the run."""
     worst_goal_distance: float = 0.0
     """Largest final distance of an agent from its goal [m]."""
+    copies_mean: float | None = None
+    """Neighbours' copies an agent held, averaged over agents and steps (ADMM; None: centralised
+    or a report written before it was recorded)."""
 
 
 
@@ -135,7 +138,18 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         wall_time_s=wall,
         unreached=tuple(i for i, done in enumerate(summary["reached"]) if not done),
         worst_goal_distance=float(final_goal_distance(result.states, scn).max()),
+        copies_mean=_mean_copies(records),
     )
+
+
+def _mean_copies(records: Sequence[StepRecord]) -> float | None:
+    """Copies held per agent and step, over a run (None when the solver reported none)."""
+    held = [r.copies for r in records if r.copies is not None]
+    return float(np.mean(held)) if held else None
+
+
+def _mean(values: Sequence[float]) -> float | None:
+    return float(np.mean(values)) if len(values) else None
 
 
 def plan_cases(
@@ -187,6 +201,7 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
             "solver_failures": sum(o.solver_failures for o in admm),
             "cost_gap_pct_median": _percentile(gaps, 50),
             "central_step_ms_median": _percentile([t for o in central.values() for t in o.step_ms], 50),
+            "copies_mean": _mean([o.copies_mean for o in admm if o.copies_mean is not None]),
         })
     return rows
 
@@ -237,7 +252,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The benchmark table (one line per family and swarm size)."""
     header = ("| family | M | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
               "| step ms median | p95 | per-agent ms median | p95 | ADMM it. mean | max | failures "
-              "| cost vs central | central step ms |")
+              "| cost vs central | central step ms | copies per agent |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         lines.append("| " + " | ".join([
@@ -249,6 +264,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
             _cell(r["agent_ms_median"]), _cell(r["agent_ms_p95"]), _cell(r["iterations_mean"]),
             _cell(r["iterations_max"]), str(r["solver_failures"]),
             _cell(r["cost_gap_pct_median"], "{:+.1f}%"), _cell(r["central_step_ms_median"]),
+            _cell(r.get("copies_mean"), "{:.2f}"),
         ]) + " |")
     return "\n".join(lines) + "\n"
 

@@ -4,8 +4,9 @@ A run folder holds ``summary.json``, ``trajectory.npz`` and ``scenario.yaml`` (t
 design.md section 8; ``trajectory.npz`` adds ``disturbances`` when the run injected process noise),
 ``steps.npz`` (per-step solver records: ``failures`` = failed solve calls, ``fallback`` = which
 agents applied a safe fallback plan, ``repaired`` = ADMM repair pass) and, for ADMM, ``admm.npz``
-(residual histories). It is written under a temporary name beside the target and renamed into place when
-complete, so a reader never sees a half-written folder.
+(residual histories, and ``copies``: how many neighbours each agent held per step). It is written
+under a temporary name beside the target and renamed into place when complete, so a reader never
+sees a half-written folder.
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ class StepRecord:
     primal_residuals: tuple[float, ...]
     dual_residuals: tuple[float, ...]
     rho: tuple[float, ...]
+    copies: np.ndarray | None = None
+    """(M,) neighbours' copies each agent held (ADMM), None for a centralised solve."""
 
     @classmethod
     def from_plan(cls, plan: PlanStep) -> StepRecord:
@@ -54,6 +57,7 @@ class StepRecord:
             primal_residuals=tuple(plan.primal_residuals),
             dual_residuals=tuple(plan.dual_residuals),
             rho=tuple(plan.rho_history),
+            copies=None if plan.copies is None else np.asarray(plan.copies, int),
         )
 
 
@@ -212,4 +216,6 @@ def _write_contents(result: RunResult, folder: Path) -> None:
             dual=dual,
             rho=rho,
             iterations=np.array([r.admm_iterations or 0 for r in records], int),
+            copies=np.array([r.copies if r.copies is not None else np.zeros(m, int) for r in records],
+                            int).reshape(len(records), m),
         )

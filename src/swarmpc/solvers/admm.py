@@ -786,6 +786,7 @@ class ADMMSolver:
             primal_residuals=primal,
             dual_residuals=dual,
             rho_history=rhos,
+            copies=np.array([len(n) for n in neighbours], int),
         )
 
     def _carried_blocks(self, neighbours: list[tuple[int, ...]]) -> list[tuple[bool, ...]]:

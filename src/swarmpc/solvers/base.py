@@ -31,6 +31,9 @@ class PlanStep:
     primal_residuals: list[float] = field(default_factory=list)
     dual_residuals: list[float] = field(default_factory=list)
     rho_history: list[float] = field(default_factory=list)
+    copies: np.ndarray | None = None
+    """(M,) how many neighbours' copies each agent held at the end of the step (ADMM; None for a
+    centralised solve, where every pair is in one problem)."""
 
 
 def input_bounds(settings: OCPSettings) -> np.ndarray:
