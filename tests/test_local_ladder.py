@@ -42,24 +42,6 @@ def test_spread_out_swarm_builds_only_the_smallest_problem():
     solver.close()
 
 
-def test_lone_agent_plan_does_not_depend_on_idle_slots():
-    """An agent without neighbours solves the same problem with 0 slots or with inactive ones."""
-    scn = builtin_scenario("circle", agents=2, radius=6.0)
-    s = OCPSettings.from_scenario(scn)
-    plans = []
-    for force_slots in (False, True):
-        solver = ADMMSolver(s, 2, scn.delta_vector, ADMMConfig())
-        ladder = solver.executor._agents[0].nlp
-        if force_slots:
-            ladder.slots_for = lambda copies: ladder.max_slots  # type: ignore[method-assign]
-        states, goals = scn.start_states(), scn.goal_states()
-        guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
-        plans.append(solver.plan(states, goals, guess))
-        assert set(ladder._built) == ({1} if force_slots else {0})
-        solver.close()
-    assert np.allclose(plans[0].states, plans[1].states, atol=1e-5)
-
-
 def test_warm_started_multipliers_reach_the_same_solution_in_fewer_iterations():
     """The next ADMM iterate's problem differs only in its consensus targets; started from the
     last solution's multipliers IPOPT lands on the cold solve's solution, sooner."""
@@ -71,7 +53,7 @@ def test_warm_started_multipliers_reach_the_same_solution_in_fewer_iterations():
     first, d, K = s.first_constrained_step, s.dim, s.num_constrained
     own, other = guess[0][first:, :d].T, guess[2][first:, :d].T  # diagonal neighbours meet mid-way
     params = {"x0": states[0], "goal": goals[0], "delta": scn.delta_vector, "rho": 10.0, "owner_weight": 5.0,
-              "Z": own, "Y": np.zeros((d, K)), "Z0": other, "Y0": np.zeros((d, K)), "active0": 1.0}
+              "Z": own, "Y": np.zeros((d, K)), "Z0": other, "Y0": np.zeros((d, K))}
     start = {"X": guess[0].T, "C0": other}
     previous = nlp.solve(params, start)
     assert previous.success
@@ -101,8 +83,7 @@ def test_a_failed_warm_start_is_retried_cold(settings):
     states, goals = scn.start_states(), scn.goal_states()
     d, K = settings.dim, settings.num_constrained
     params = {"x0": states[0], "goal": goals[0], "delta": scn.delta_vector, "rho": 10.0, "owner_weight": 5.0,
-              "Z": np.zeros((d, K)), "Y": np.zeros((d, K)), "Z0": np.ones((d, K)), "Y0": np.zeros((d, K)),
-              "active0": 1.0}
+              "Z": np.zeros((d, K)), "Y": np.zeros((d, K)), "Z0": np.ones((d, K)), "Y0": np.zeros((d, K))}
     first = ladder.solve(params, {}, copies=1)
     retried = ladder.solve(params, first.x, copies=1, duals=(first.lam_x, first.lam_g))
     assert calls == [False, True, False]

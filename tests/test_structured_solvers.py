@@ -44,7 +44,7 @@ def test_stagewise_problem_has_the_local_problems_optimum(copies):
               "owner_weight": bench.OWNER_WEIGHT, "Z": targets[0], "Y": np.zeros_like(targets[0])}
     guess = {"X": np.tile(state[:, None], (1, N + 1))}
     for c in range(copies):
-        values.update({f"Z{c}": targets[c + 1], f"Y{c}": np.zeros_like(targets[0]), f"active{c}": 1.0})
+        values.update({f"Z{c}": targets[c + 1], f"Y{c}": np.zeros_like(targets[0])})
         guess[f"C{c}"] = targets[c + 1]
     solution = local.solve(values, guess)
 

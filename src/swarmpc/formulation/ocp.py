@@ -184,18 +184,14 @@ def add_certificate(
     margin: ca.SX,
     norm_sq: ca.SX,
     s: OCPSettings,
-    relax: ca.SX | float = 0.0,
 ) -> None:
-    """Impose the hard or soft OBCA condition on precomputed (margin, ||G^T lambda||^2) rows.
-
-    ``relax`` is added to the margin; a large value switches the condition off (an unused slot).
-    """
+    """Impose the hard or soft OBCA condition on precomputed (margin, ||G^T lambda||^2) rows."""
     if s.collision == "hard":
-        builder.constrain(f"sep{tag}", margin + relax, s.d_min, np.inf)
+        builder.constrain(f"sep{tag}", margin, s.d_min, np.inf)
         builder.constrain(f"norm{tag}", norm_sq, -np.inf, 1.0)
     else:
         slack = builder.variable(f"A{tag}", 1, margin.shape[1], 0.0, np.inf)
-        builder.constrain(f"sep{tag}", margin + slack + relax, s.d_min, np.inf)
+        builder.constrain(f"sep{tag}", margin + slack, s.d_min, np.inf)
         builder.constrain(f"norm{tag}", norm_sq, 1.0, 1.0)
         builder.cost += s.kappa * ca.sum2(slack)
 
@@ -256,10 +252,10 @@ def build_local(
     Variables: own trajectory (``X``, ``U``), copies of the others' positions at the constrained
     steps, certificates ``L{c}``. Copies are either free positions ``C{c}`` (d, K) or, with
     ``dynamic_copies``, whole trajectories ``Xc{c}``/``Uc{c}`` from the neighbour's measured state
-    ``x0c{c}`` obeying its dynamics and limits. Only the own trajectory is ever applied. Parameters: ``x0``, ``goal``, ``delta``, ``rho``, the consensus targets ``Z`` (own)
-    and ``Z{c}``, the scaled multipliers ``Y`` and ``Y{c}`` (gamma), and ``active{c}`` in {0, 1}
-    (an inactive copy slot is unconstrained and costs nothing, so one built solver serves every
-    neighbour count up to ``num_copies``).
+    ``x0c{c}`` obeying its dynamics and limits. Only the own trajectory is ever applied.
+    Parameters: ``x0``, ``goal``, ``delta``, ``rho``, ``owner_weight``, the consensus targets ``Z``
+    (own) and ``Z{c}``, and the multipliers ``Y`` and ``Y{c}`` (gamma). One problem is built per
+    neighbour count (:class:`swarmpc.solvers.admm.LocalSolverLadder`), so every copy is in use.
 
     Local objective (paper eq. 16): own cost + sum_b gamma_b'(v_b - z_b) + rho_b/2 ||v_b - z_b||^2,
     with rho_b = rho * owner_weight on the own block and rho on the copies (block-weighted consensus:
@@ -282,11 +278,10 @@ def build_local(
             copy = builder.variable(f"C{c}", d, K)
         z = builder.parameter(f"Z{c}", d, K)
         y = builder.parameter(f"Y{c}", d, K)
-        active = builder.parameter(f"active{c}", 1)
-        builder.cost += active * consensus_penalty(copy, z, y, rho) + (1 - active) * ca.sumsqr(copy - z)
+        builder.cost += consensus_penalty(copy, z, y, rho)
         lam = builder.variable(f"L{c}", 2 * d, K, 0.0, np.inf)
         margin, norm_sq = certificate_terms(own - copy, lam, half)
-        add_certificate(builder, str(c), margin, norm_sq, s, relax=(1 - active) * 1e3)
+        add_certificate(builder, str(c), margin, norm_sq, s)
     label = f"local_{num_copies}_{int(dynamic_copies)}"
     if plugin != "ipopt":
         return builder.build(label, plugin, options or {})

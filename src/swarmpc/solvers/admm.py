@@ -391,15 +391,11 @@ class LocalAgent:
             "Y": self._gamma_own if self._gamma_own is not None and not repair else zeros,
         }
         n = len(request.neighbours)
-        for slot in range(self.nlp.slots_for(n)):
-            active = slot < len(request.neighbours)
-            params[f"active{slot}"] = 1.0 if active else 0.0
+        for slot, j in enumerate(request.neighbours):
             if self.dynamic_copies:
-                params[f"x0c{slot}"] = request.neighbour_states[slot] if active else request.state
-            if active:
-                j = request.neighbours[slot]
-                params[f"Z{slot}"] = request.z_neighbours[slot]
-                params[f"Y{slot}"] = zeros if repair else self._gamma.get(j, zeros)
+                params[f"x0c{slot}"] = request.neighbour_states[slot]
+            params[f"Z{slot}"] = request.z_neighbours[slot]
+            params[f"Y{slot}"] = zeros if repair else self._gamma.get(j, zeros)
         same_shape = request.neighbours == self._last_neighbours
         targets = self._consensus_targets(request, params) if n else None
         if targets is not None and self._reusable(request, targets, same_shape) and self._last_sent is not None:
