@@ -9,6 +9,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 
 def test_sigint_gives_a_complete_interrupted_folder(tmp_path):
@@ -31,3 +32,31 @@ def test_sigint_gives_a_complete_interrupted_folder(tmp_path):
     with np.load(out / "trajectory.npz") as data:
         states, inputs = data["states"], data["inputs"]
     assert summary["steps"] == inputs.shape[0] == states.shape[0] - 1 >= 1
+
+
+@pytest.mark.parametrize("delay", [0.02, 0.1, 0.25])
+def test_sigint_while_starting_up_is_one_line_not_a_traceback(tmp_path, delay):
+    """Ctrl-C while the command line is still importing its libraries: status 130 and the same
+    one line as later on; nothing written. (Python may end such a process by SIGINT itself after
+    the line, which a shell reports as the same status 130.)"""
+    out = tmp_path / "run"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "swarmpc", "run", "paper-2d", "--out", str(out), "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    time.sleep(delay)
+    process.send_signal(signal.SIGINT)
+    _stdout, stderr = process.communicate(timeout=120)
+    lines = [line for line in stderr.splitlines() if "leaked" not in line]  # nanobind's exit notes
+    assert "Traceback" not in stderr
+    assert process.returncode in (130, -signal.SIGINT) and lines == ["swarmpc: interrupted"], stderr
+    assert not out.exists()
+
+
+def test_package_import_is_light():
+    """``import swarmpc`` loads none of the numerical stack, so the entry point can take Ctrl-C at once."""
+    code = "import sys, swarmpc; print(sorted(m for m in ('numpy', 'casadi', 'pydantic') if m in sys.modules))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"
+    from swarmpc import Scenario, load_scenario  # the names still resolve, on first use
+    assert callable(load_scenario) and Scenario.__name__ == "Scenario"

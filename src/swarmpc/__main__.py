@@ -1,5 +1,5 @@
 """``python -m swarmpc`` runs the command line."""
 
-from swarmpc.cli import main
+from swarmpc._launch import main
 
 main()
