@@ -265,3 +265,20 @@ def test_ctrl_c_while_writing_the_run_folder_leaves_nothing(tmp_path, monkeypatc
     assert (code, stderr) == (130, "swarmpc: interrupted\n")
     assert len(seen) == 1 and seen[0].parent == tmp_path and seen[0] != out  # it was half-written
     assert list(tmp_path.iterdir()) == []  # and the staging folder is gone
+
+
+@given(points=st.lists(st.tuples(st.integers(0, 12), st.integers(0, 12)), min_size=2, max_size=12, unique=True),
+       delta=st.sampled_from([0.25, 0.5, 0.75]))
+@settings(max_examples=40, deadline=None)
+def test_overlapping_starts_name_the_first_overlapping_pair(points, delta):
+    """The start check (one row of pairs at a time) agrees with the plain double loop: an error
+    exactly when two starts are within delta on every axis, naming the first such pair."""
+    starts = [[0.5 * x, 0.5 * y] for x, y in points]
+    agents = [{"start": p, "goal": [20.0 + 2 * k, 20.0]} for k, p in enumerate(starts)]
+    first = next(((i, j) for i in range(len(starts)) for j in range(i + 1, len(starts))
+                  if all(abs(a - b) < delta for a, b in zip(starts[i], starts[j]))), None)
+    if first is None:
+        scenario_from_dict({"dim": 2, "delta": delta, "agents": agents})
+        return
+    with pytest.raises(ScenarioError, match=re.escape(f"agents[{first[1]}].start: within delta of agents[{first[0]}].start")):
+        scenario_from_dict({"dim": 2, "delta": delta, "agents": agents})

@@ -409,14 +409,15 @@ def _consistency_errors(scn: Scenario) -> list[str]:
     delta = scn.delta_vector
     for field in ("start", "goal"):
         positions = np.array([_full_state(getattr(a, field), d)[:d] for a in scn.agents])
-        for i in range(len(positions)):
-            for j in range(i + 1, len(positions)):
-                gap = np.abs(positions[i] - positions[j])
-                if np.all(gap < delta):
-                    return [
-                        f"agents[{j}].{field}: within delta of agents[{i}].{field} "
-                        f"(inf-norm gap {np.max(gap):.3g} < delta {scn.delta})"
-                    ]
+        for i in range(len(positions) - 1):  # one row of pairs at a time: O(M) numpy calls
+            gaps = np.abs(positions[i + 1 :] - positions[i])
+            inside = np.flatnonzero(np.all(gaps < delta, axis=1))
+            if inside.size:
+                j = i + 1 + int(inside[0])
+                return [
+                    f"agents[{j}].{field}: within delta of agents[{i}].{field} "
+                    f"(inf-norm gap {np.max(gaps[inside[0]]):.3g} < delta {scn.delta})"
+                ]
         for n, position in enumerate(positions):
             if scn.workspace is not None:
                 lo = np.asarray(scn.workspace.lower)
