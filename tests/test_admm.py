@@ -214,3 +214,75 @@ def test_admm_closed_loop(admm_run):
         assert copies.shape == (summary["steps"], m) and copies.min() >= 0 and copies.max() <= m - 1
         assert np.all(copies.sum(axis=1) % 2 == 0)  # coupling is symmetric: a copy held each way
         assert copies.max() >= 1  # the swap meets in the middle, where the agents couple
+
+
+def test_components_label_connected_agents_alike():
+    from swarmpc.solvers.admm import components
+
+    labels = components([(1,), (0, 2), (1,), (), (5,), (4,)])
+    assert labels[0] == labels[1] == labels[2] and labels[4] == labels[5]
+    assert len({labels[0], labels[3], labels[4]}) == 3
+
+
+class CountingExecutor(SerialExecutor):
+    """Counts the local solves asked of each agent."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.asked: dict[int, int] = {}
+
+    def solve(self, requests):
+        for r in requests:
+            self.asked[r.agent] = self.asked.get(r.agent, 0) + 1
+        return super().solve(requests)
+
+
+def _two_groups(steps: int = 20):
+    """paper-2d's four agents near the centre, and far off a pair flying side by side: coupled
+    (their guesses pass within the margin) but never in each other's way."""
+    scn, states = approach_state("paper-2d", steps)
+    pair = np.array([[0.0, 20.0, 0.4, 0.0], [0.0, 20.5, 0.4, 0.0]])
+    goals = np.vstack([scn.goal_states(), [[3.0, 20.0, 0, 0], [3.0, 20.5, 0, 0]]])
+    scn6 = scn.with_updates(agents=[*[a.model_dump() for a in scn.agents],
+                                    {"start": [0.0, 20.0], "goal": [3.0, 20.0]},
+                                    {"start": [0.0, 20.5], "goal": [3.0, 20.5]}],
+                          workspace={"lower": [-3.0, -3.0], "upper": [4.0, 22.0]})
+    return scn6, np.vstack([states, pair]), goals
+
+
+def test_component_stop_spares_a_settled_group_and_keeps_a_single_group_unchanged():
+    """Second MPC step of two groups: the crossing four iterate long, the pair flying side by side
+    meets the tolerance early and, with ``component_stop``, is not solved again."""
+    scn, states, goals = _two_groups(32)
+    s = OCPSettings.from_scenario(scn)
+    guesser = GuessProvider(scn, s, "shifted")
+    runs = {}
+    for flag in (False, True):
+        executor = CountingExecutor()
+        config = ADMMConfig(coupling_margin=0.2, closing_time=0.1, component_stop=flag)
+        solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, config, executor)
+        first = solver.plan(states, goals, guesser.guesses(states, goals, None))
+        executor.asked.clear()
+        now = first.states[:, 1]
+        runs[flag] = (solver.plan(now, goals, guesser.guesses(now, goals, first)), executor.asked,
+                      solver._final_neighbours)
+    (plain, asked_plain, coupled), (split, asked_split, _) = runs[False], runs[True]
+    assert coupled[4] == (5,) and 4 not in {j for n in coupled[:4] for j in n}  # two groups
+    assert plain.admm_iterations == split.admm_iterations >= 10
+    assert asked_plain[4] == asked_split[0] == split.admm_iterations  # the four iterate throughout
+    assert asked_split[4] == asked_split[5] < split.admm_iterations / 2  # the pair stops early
+    # the groups are independent problems: the four fly the same plans either way
+    assert np.allclose(plain.states[:4], split.states[:4], atol=1e-6)
+    positions = split.states[:, s.first_constrained_step:, :2]
+    for i in range(6):
+        for j in range(i + 1, 6):
+            clearance = min(point_box_distance(p - q, scn.delta_vector) for p, q in zip(positions[i], positions[j]))
+            assert clearance >= s.d_min - 5e-3  # d_min up to the consensus tolerance; no contact
+
+    # one group only: the stop is the paper's, and so is every plan
+    scn4, states4 = approach_state("paper-2d")
+    guess4 = GuessProvider(scn4, s, "straight").guesses(states4, scn4.goal_states(), None)
+    plans = [ADMMSolver(s, 4, scn4.delta_vector, ADMMConfig(component_stop=flag)).plan(states4, scn4.goal_states(), guess4)
+             for flag in (False, True)]
+    assert plans[0].admm_iterations == plans[1].admm_iterations
+    assert np.array_equal(plans[0].states, plans[1].states)

@@ -277,9 +277,11 @@ def test_coupling_margin_follows_the_collision_form_unless_set(collision, margin
 
 @pytest.mark.parametrize(("tolerance", "relaxation"), [(0.0, 1.0), (3e-4, 1.6)])
 def test_the_reuse_tolerance_and_relaxation_of_the_scenario_reach_the_solver(tolerance, relaxation):
-    scn = builtin_scenario("paper-2d").with_updates(**{"solver.reuse_tol": tolerance, "solver.relaxation": relaxation})
+    scn = builtin_scenario("paper-2d").with_updates(**{"solver.reuse_tol": tolerance, "solver.relaxation": relaxation,
+                                                        "solver.component_stop": relaxation > 1})
     config = make_solver(scn, OCPSettings.from_scenario(scn)).config
     assert (config.reuse_tol, config.relaxation) == (tolerance, relaxation)
+    assert config.component_stop == (relaxation > 1)
 
 
 def test_pairs_closing_in_fast_couple_from_farther_away():

@@ -178,6 +178,12 @@ class SolverConfig(_Frozen):
         description="ADMM over-relaxation alpha: the consensus averages alpha * answer + (1 - alpha) * "
         "previous consensus (1: plain ADMM, as in the paper)",
     )
+    component_stop: bool = Field(
+        default=False,
+        description="ADMM also stops each connected group of coupled agents once its own residuals meet tol "
+        "(its agents are not solved again in the step while other groups iterate); false: only the "
+        "residuals over all blocks decide",
+    )
     reuse_tol: float = Field(
         default=1e-4, ge=0,
         description="within an MPC step, an ADMM agent whose consensus targets moved less than this [m] "

@@ -75,6 +75,12 @@ class ADMMConfig:
     answer again instead of solving: that answer solves a problem whose targets differ by at most
     this much (0: always solve). An inexact local step, far below the consensus tolerance;
     measured in docs/admm.md."""
+    component_stop: bool = False
+    """Also stop each connected component of the coupling graph on its own residuals: agents whose
+    component has met the tolerance are not solved again in the step (their answers and
+    multipliers stand) while other components iterate on, until the residuals over all blocks meet
+    the tolerance (the paper's stop, which alone decides with False). Either way the conflict check
+    runs on everyone's plans before any is applied (docs/admm.md)."""
     engage_margin: float | None = None
     """None: the paper's stop (primal and dual residual over every block). A margin [m]: the
     engaged stop, primal residual over engaged pairs' blocks plus mutually clear own plans
@@ -573,6 +579,24 @@ def couple(neighbours: list[tuple[int, ...]], pairs: list[tuple[int, int]]) -> l
     return [tuple(sorted(n)) for n in coupled]
 
 
+def components(neighbours: list[tuple[int, ...]]) -> np.ndarray:
+    """Label per agent of its connected component in the coupling graph (labels 0, 1, ...)."""
+    labels = np.full(len(neighbours), -1)
+    count = 0
+    for start in range(len(neighbours)):
+        if labels[start] >= 0:
+            continue
+        stack = [start]
+        labels[start] = count
+        while stack:
+            for j in neighbours[stack.pop()]:
+                if labels[j] < 0:
+                    labels[j] = count
+                    stack.append(j)
+        count += 1
+    return labels
+
+
 @dataclass(frozen=True)
 class EngagedBlocks:
     """Which consensus blocks count in the residuals: own blocks per agent, copy slots per agent."""
@@ -701,18 +725,28 @@ class ADMMSolver:
         converged = False
         window_start = 0
         carry = self._carried_blocks(neighbours)
+        by_component = cfg.component_stop and cfg.engage_margin is None
+        iterating = np.ones(M, bool)  # agents whose component has not met the tolerance yet
         for iteration in range(cfg.max_iter):
             requests = [
                 self._request(i, states, goals, guess, neighbours[i], z, rho, rho_previous, iteration == 0,
                               carry=carry[i] if iteration == 0 else ())
-                for i in range(M)
+                for i in map(int, np.flatnonzero(iterating))
             ]
-            results = self.executor.solve(requests)
-            agent_times += [r.solve_time for r in results]
-            failures += sum(not r.success for r in results)
+            fresh = self.executor.solve(requests)
+            if len(fresh) == M:
+                results = list(fresh)
+            else:  # the stopped components' answers stand
+                for r in fresh:
+                    results[r.agent] = r
+            for r in fresh:
+                agent_times[r.agent] += r.solve_time
+            failures += sum(not r.success for r in fresh)
             z_new, r_norm, weights = self._average(results, neighbours, z)
             z_new_change = z_new - z
             s_norm = self._dual_residual(z_new_change, weights, neighbours, rho)
+            if by_component:
+                iterating = ~self._components_converged(results, neighbours, z_new, z_new_change, weights, rho)
             z = z_new
             if cfg.engage_margin is not None:
                 # only blocks where a pair's separation binds carry information the others need
@@ -724,6 +758,8 @@ class ADMMSolver:
             converged = r_norm <= cfg.tol and (
                 s_norm <= cfg.tol * rho / cfg.rho or cfg.engage_margin is not None
             )
+            if by_component:
+                converged = converged or not iterating.any()
             primal.append(r_norm)
             dual.append(float(s_norm))
             rhos.append(rho)
@@ -734,6 +770,9 @@ class ADMMSolver:
                     break
                 converged = False
                 neighbours = couple(neighbours, missing)
+                if by_component:  # the components the new pairs join iterate again
+                    labels = components(neighbours)
+                    iterating |= np.isin(labels, labels[[i for pair in missing for i in pair]])
             rho_previous = rho
             if self._stalled(primal[window_start:]):
                 if cfg.stall_rho_factor is None or rho >= cfg.rho_bounds[1]:
@@ -893,6 +932,39 @@ class ADMMSolver:
                 count[j] += 1
         z = total / count[:, None, None]
         return z, self._primal_residual(results, neighbours, z), weights
+
+    def _components_converged(
+        self, results: list[LocalResult], neighbours: list[tuple[int, ...]], z: np.ndarray,
+        change: np.ndarray, weights: np.ndarray, rho: float,
+    ) -> np.ndarray:
+        """Per agent: its component of the coupling graph meets the tolerance on its own blocks
+        (the primal and dual residuals of :meth:`_primal_residual` and :meth:`_dual_residual`,
+        restricted to the component). Components are independent consensus problems: z of a
+        block depends only on the answers of its component's agents."""
+        cfg = self.config
+        labels = components(neighbours)
+        primal_sq = np.zeros(labels.max() + 1)
+        primal_n = np.zeros_like(primal_sq)
+        dual_sq = np.zeros_like(primal_sq)
+        dual_n = np.zeros_like(primal_sq)
+        held = np.zeros(self.num_agents, int)
+        for n in neighbours:
+            for j in n:
+                held[j] += 1
+        for r in results:
+            c = labels[r.agent]
+            primal_sq[c] += float(np.sum((r.own - z[r.agent]) ** 2))
+            primal_n[c] += r.own.size
+            for slot, j in enumerate(neighbours[r.agent]):
+                primal_sq[c] += float(np.sum((r.copies[slot] - z[j]) ** 2))
+                primal_n[c] += r.copies[slot].size
+            own = bool(neighbours[r.agent])
+            dual_sq[c] += (weights[r.agent] ** 2 * own + held[r.agent]) * float(np.sum(change[r.agent] ** 2))
+            dual_n[c] += (own + held[r.agent]) * change[r.agent].size
+        primal = np.sqrt(primal_sq / np.maximum(primal_n, 1))
+        dual = rho * np.sqrt(dual_sq / np.maximum(dual_n, 1))
+        met = (primal <= cfg.tol) & (dual <= cfg.tol * rho / cfg.rho)
+        return met[labels]
 
     def _dual_residual(
         self, change: np.ndarray, weights: np.ndarray, neighbours: list[tuple[int, ...]], rho: float,
