@@ -286,3 +286,49 @@ def test_component_stop_spares_a_settled_group_and_keeps_a_single_group_unchange
              for flag in (False, True)]
     assert plans[0].admm_iterations == plans[1].admm_iterations
     assert np.array_equal(plans[0].states, plans[1].states)
+
+
+class FailingRepairExecutor(SerialExecutor):
+    """Agent ``failing`` fails every repair solve and flies a fallback nobody planned against:
+    coasting straight on (a replayed previous plan can go anywhere the others no longer expect)."""
+
+    def __init__(self, failing: int, settings: OCPSettings) -> None:
+        super().__init__()
+        self.failing = failing
+        self.settings = settings
+
+    def solve(self, requests):
+        from swarmpc.model.dynamics import DoubleIntegrator
+        from swarmpc.solvers.admm import LocalResult
+
+        out = []
+        for r in requests:
+            if r.agent == self.failing and r.neighbour_plans is not None:
+                s = self.settings
+                inputs = np.zeros((s.horizon, s.dim))
+                states = DoubleIntegrator(s.dim, s.dt, s.discretization).rollout(r.state, inputs)
+                own = states[self.settings.first_constrained_step:, : self.settings.dim].T.copy()
+                out.append(LocalResult(agent=r.agent, own=own, copies=r.z_neighbours.copy(), states=states,
+                                       inputs=inputs, success=False, fallback=True, solve_time=0.0,
+                                       max_slack=0.0, cost=0.0))
+            else:
+                out.extend(super().solve([r]))
+        return out
+
+
+def test_neighbours_replan_around_a_fallback_they_did_not_see():
+    """Two agents head-on at speed, ADMM cut short so the repair runs; agent 0 fails in the repair
+    (after agent 1 was repaired against its plan) and coasts straight on. Agent 1 must end up clear
+    of that fallback, not of the plan agent 0 no longer flies."""
+    scn = builtin_scenario("circle", agents=2, radius=2.0).with_updates(**{"limits.accel": 1.0})
+    s = OCPSettings.from_scenario(scn)
+    states = np.array([[-0.6, 0.02, 0.6, 0.0], [0.6, -0.02, -0.6, 0.0]])
+    goals = scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+    executor = FailingRepairExecutor(0, s)
+    solver = ADMMSolver(s, 2, scn.delta_vector, ADMMConfig(max_iter=1), executor)
+    plan = solver.plan(states, goals, guess)
+    assert plan.repaired and plan.fallback[0] and not plan.fallback[1]
+    k = s.first_constrained_step
+    gaps = np.max(np.abs(plan.states[0, k:, :2] - plan.states[1, k:, :2]), axis=1)
+    assert gaps.min() >= scn.delta_vector[0] + s.d_min - 1e-3

@@ -883,15 +883,15 @@ class ADMMSolver:
         before it and the plans those after it will respect, so every pair ends up feasible
         whenever the solves succeed. An agent whose solve fails flies its fallback plan, which
         the agents after it respect; it re-plans once more at the end, against everyone's final
-        plans, since a plan that respects all of them keeps every pair it is in feasible."""
+        plans, since a plan that respects all of them keeps every pair it is in feasible. If it
+        still fails, its fallback is final, and the agents repaired before it never saw it: each
+        neighbour whose plan comes within delta + d_min of that fallback re-plans once more
+        against every final plan (spread M = 128 had a collision without this; docs/admm.md)."""
         first = self.settings.first_constrained_step
         repaired = list(results)
-        order = list(range(self.num_agents))[::-1]  # a tie-break; see docs/admm.md
-        retried: set[int] = set()
-        for i in order:
+
+        def replan(i: int) -> None:
             others = list(neighbours[i])
-            if not others:
-                continue
             plans = (
                 np.array([repaired[j].states for j in others]),
                 np.array([repaired[j].inputs for j in others]),
@@ -900,9 +900,22 @@ class ADMMSolver:
             own_z[i] = repaired[i].states[first:, : self.settings.dim].T
             request = self._request(i, states, goals, guess, neighbours[i], own_z, rho, rho, False, plans)
             repaired[i] = self.executor.solve([request])[0]
+
+        order = list(range(self.num_agents))[::-1]  # a tie-break; see docs/admm.md
+        retried: set[int] = set()
+        for i in order:
+            if not neighbours[i]:
+                continue
+            replan(i)
             if not repaired[i].success and i not in retried:
                 retried.add(i)
                 order.append(i)
+        limit = float(np.max(self.delta)) + self.settings.d_min
+        for failed in [k for k in range(self.num_agents) if not repaired[k].success]:
+            for i in neighbours[failed]:
+                gap = np.max(np.abs(repaired[i].own - repaired[failed].own), axis=0).min()
+                if repaired[i].success and gap < limit:
+                    replan(i)
         return repaired
 
     def _average(
