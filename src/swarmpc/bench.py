@@ -4,7 +4,8 @@ Families (all with Δ = 0.3 and the paper's weights): ``circle`` (2D antipodal s
 (3D antipodal swap), ``random`` (3D, seeded starts and goals in a 3 x 3 x 2 m box, >= 0.5 m
 apart and >= 0.1 m from each other's delta box, acceleration <= 1 m/s² per axis, goal tolerance
 0.1 m) and ``spread`` (``random`` at constant density: the box grows as (M / 8)^(1/3) per side, so
-neighbourhoods stay the size they have at M = 8 and the work per agent can be read against M alone). Each case is one closed-loop run in its own process; collisions and separations come from
+neighbourhoods stay the size they have at M = 8 and the work per agent can be read against M
+alone). Each case is one closed-loop run in its own process; collisions and separations come from
 the run's trajectory, never from a flag.
 Numbers are wall-clock measurements on whatever machine runs it: read them as such.
 """
@@ -27,7 +28,7 @@ from swarmpc.config import Scenario
 from swarmpc.model.geometry import count_collisions, inf_separation_ratio
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.metrics import final_goal_distance
-from swarmpc.simulation.results import StepRecord, write_run
+from swarmpc.simulation.results import write_run
 from swarmpc.simulation.loop import StopFlag, simulate
 from swarmpc.solvers.executors import available_cores, make_executor
 
@@ -138,17 +139,12 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         wall_time_s=wall,
         unreached=tuple(i for i, done in enumerate(summary["reached"]) if not done),
         worst_goal_distance=float(final_goal_distance(result.states, scn).max()),
-        copies_mean=_mean_copies(records),
+        copies_mean=_mean([r.copies for r in records if r.copies is not None]),
     )
 
 
-def _mean_copies(records: Sequence[StepRecord]) -> float | None:
-    """Copies held per agent and step, over a run (None when the solver reported none)."""
-    held = [r.copies for r in records if r.copies is not None]
-    return float(np.mean(held)) if held else None
-
-
-def _mean(values: Sequence[float]) -> float | None:
+def _mean(values: Sequence[Any]) -> float | None:
+    """Mean over every number in ``values`` (scalars or equal-length arrays); None when empty."""
     return float(np.mean(values)) if len(values) else None
 
 
