@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from swarmpc.config import load_scenario
 from swarmpc.model.geometry import inf_separation_ratio, point_box_distance
-from swarmpc.scenarios import BUILTINS, SWARM_WEIGHTS, builtin_scenario
+from swarmpc.scenarios import BUILTINS, builtin_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -64,31 +64,6 @@ def test_spread_keeps_the_density_of_eight_agents_in_the_random_box(dim):
         assert scn.name.startswith("spread") and scn.stop.max_steps >= 600
     # the floor stays where drones take off; the box grows upwards
     assert builtin_scenario("spread", agents=64, seed=1).bounds()[0][2] == pytest.approx(0.2)
-
-
-def test_swarms_use_the_swarm_weights_and_the_paper_scenarios_the_papers():
-    for name in ("random", "spread"):
-        weights = builtin_scenario(name, agents=8, seed=0).weights
-        assert (weights.Q, weights.R, weights.Qf) == (SWARM_WEIGHTS["Q"], SWARM_WEIGHTS["R"], SWARM_WEIGHTS["Qf"])
-    for name in ("paper-2d", "paper-3d", "circle"):
-        weights = builtin_scenario(name).weights
-        assert (weights.Q, weights.R, weights.Qf) == (0.1, 1.0, 1.0)
-
-
-def test_swarm_weights_reach_the_goals_sooner_than_the_papers_without_collisions():
-    """The reason for the swarm weights, on a run small enough for the default suite."""
-    from swarmpc.simulation.loop import simulate
-
-    swarm = builtin_scenario("random", agents=4, seed=0)
-    paper = swarm.with_updates(**{"weights.Q": 0.1, "weights.R": 1.0, "weights.Qf": 1.0})
-    steps = {}
-    for label, scn in (("swarm", swarm), ("paper", paper)):
-        result = simulate(scn)
-        positions = result.states[:, :, :3]
-        assert result.summary["all_reached"]
-        assert inf_separation_ratio(positions, scn.delta_vector).min() >= 1.0
-        steps[label] = len(result.records)
-    assert steps["swarm"] < 0.5 * steps["paper"]
 
 
 def test_scenarios_command_lists_every_builtin():

@@ -1,7 +1,6 @@
 """The scaling benchmark behind ``swarmpc bench``: swarms of growing size, one table.
 
-Families (all with Δ = 0.3; circle and sphere with the paper's weights, random and spread with
-``scenarios.SWARM_WEIGHTS``): ``circle`` (2D antipodal swap), ``sphere``
+Families (all with Δ = 0.3 and the paper's weights): ``circle`` (2D antipodal swap), ``sphere``
 (3D antipodal swap), ``random`` (3D, seeded starts and goals in a 3 x 3 x 2 m box, >= 0.5 m
 apart and >= 0.1 m from each other's delta box, acceleration <= 1 m/s² per axis, goal tolerance
 0.1 m) and ``spread`` (``random`` at constant density: the box grows as (M / 8)^(1/3) per side, so

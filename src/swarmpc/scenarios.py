@@ -5,9 +5,7 @@
   (2D) or at alternate corners of a 3 m cube around z = 1.5 (3D) and swap diagonally, so all
   four paths cross at the centre, the hardest case for a 4-agent swap.
 * ``circle``: M agents on a circle (2D) or a sphere (3D, Fibonacci points) swapping antipodally.
-* ``random``: seeded random starts and goals in a box, at least 0.5 m apart, with stronger
-  position weights than the paper's (``SWARM_WEIGHTS``: Q = R = I, Qf = 10 I).
-* ``spread``: ``random`` in a box that grows with the swarm (constant density).
+* ``random``: seeded random starts and goals in a box, at least 0.5 m apart.
 * ``wall-door``: a wall with a door between two groups that swap sides.
 * ``pillars``: agents crossing a field of pillars.
 * ``u-trap``: a U-shaped trap in front of a goal; the straight line leads into it.
@@ -24,12 +22,6 @@ from swarmpc.config import Scenario, ScenarioError, scenario_from_dict
 from swarmpc.model.geometry import point_box_distance
 
 PAPER = {"dt": 0.1, "horizon": 10, "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}, "stop": {"max_steps": 600}}
-
-SWARM_WEIGHTS = {"Q": 1.0, "R": 1.0, "Qf": 10.0}
-"""Weights of the ``random`` and ``spread`` swarms. With the paper's Q = 0.1 I against R = I the
-pull to the goal is so weak that agents crawl (random M = 32, seed 1: 416 steps to the goals, 115
-with these); a 64-agent swarm then runs out of its 60 s. Q = R = I, Qf = 10 I reaches the goals two
-to four times sooner, at the same separations (docs/admm.md, "Swarm weights")."""
 
 
 def paper_2d(delta: float = 0.3, **_: Any) -> dict[str, Any]:
@@ -110,7 +102,7 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
 
     starts, goals = sample(), sample()
     return {"name": f"random-{dim}d-{agents}-s{seed}", "dim": dim, **PAPER, "delta": delta,
-            "weights": SWARM_WEIGHTS, "seed": seed, "limits": {"accel": 1.0},
+            "seed": seed, "limits": {"accel": 1.0},
             "workspace": {"lower": lower.round(4).tolist(), "upper": upper.round(4).tolist()},
             "agents": [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()}
                        for s, g in zip(starts, goals)],
