@@ -60,3 +60,24 @@ def test_package_import_is_light():
     assert done.stdout.strip() == "[]"
     from swarmpc import Scenario, load_scenario  # the names still resolve, on first use
     assert callable(load_scenario) and Scenario.__name__ == "Scenario"
+
+
+def test_an_import_error_raised_by_a_ctrl_c_counts_as_the_ctrl_c():
+    """A Ctrl-C inside a compiled module's initialisation surfaces as that module's import error."""
+    from swarmpc._launch import caused_by_interrupt
+
+    def failing_import(chain: str) -> BaseException:
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as interrupt:
+                if chain == "cause":
+                    raise ImportError("initialization failed") from interrupt
+                raise ImportError("initialization failed")
+        except ImportError as error:
+            return error
+
+    assert caused_by_interrupt(failing_import("cause"))
+    assert caused_by_interrupt(failing_import("context"))
+    assert caused_by_interrupt(KeyboardInterrupt())
+    assert not caused_by_interrupt(ImportError("no module named casadi"))

@@ -9,10 +9,28 @@ import sys
 INTERRUPTED = 130
 
 
+def caused_by_interrupt(error: BaseException) -> bool:
+    """Whether ``error`` is a Ctrl-C or was raised while handling one.
+
+    A Ctrl-C that lands inside a compiled extension's initialisation comes out as that module's
+    import error, with the ``KeyboardInterrupt`` as its cause or context.
+    """
+    seen: set[int] = set()
+    current: BaseException | None = error
+    while current is not None and id(current) not in seen:
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return False
+
+
 def main() -> None:
     try:
         from swarmpc.cli import main as cli_main
-    except KeyboardInterrupt:
+    except BaseException as error:  # noqa: BLE001 - only interrupts are swallowed, see below
+        if not caused_by_interrupt(error):
+            raise
         sys.stderr.write("swarmpc: interrupted\n")
         sys.exit(INTERRUPTED)
     cli_main()
