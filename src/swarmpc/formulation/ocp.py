@@ -20,7 +20,7 @@ delta, consensus targets, multipliers, rho) is a parameter.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import casadi as ca
 import numpy as np
@@ -245,7 +245,7 @@ def build_centralized(s: OCPSettings, num_agents: int, options: dict | None = No
 
 def build_local(
     s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict | None = None,
-    plugin: str = "ipopt", warm_start: bool = False,
+    plugin: str = "ipopt", warm_start: bool = False, pair_collision: str | None = None,
 ) -> CompiledNLP:
     """Agent i's ADMM subproblem with ``num_copies`` local copies of other agents.
 
@@ -260,6 +260,11 @@ def build_local(
     Local objective (paper eq. 16): own cost + sum_b gamma_b'(v_b - z_b) + rho_b/2 ||v_b - z_b||^2,
     with rho_b = rho * owner_weight on the own block and rho on the copies (block-weighted consensus:
     the same problem with the own consensus rows scaled by sqrt(owner_weight)).
+
+    ``pair_collision`` ("hard" / "soft") overrides the form of the constraints between the agent and
+    its copies only (static obstacles keep ``s.collision``): the soft form with slack price
+    ``s.kappa`` is the rescue problem of a hard-constrained agent, always feasible, whose optimum
+    is the plan that violates the separation least (see ``LocalAgent``).
     """
     builder = ProblemBuilder()
     d, K, first = s.dim, s.num_constrained, s.first_constrained_step
@@ -271,6 +276,7 @@ def build_local(
     z_own = builder.parameter("Z", d, K)
     y_own = builder.parameter("Y", d, K)
     builder.cost += consensus_penalty(own, z_own, y_own, rho * owner_weight)
+    pair_settings = s if pair_collision is None else replace(s, collision=pair_collision)
     for c in range(num_copies):
         if dynamic_copies:
             copy = add_trajectory(builder, f"c{c}", s)[0][:d, first:]
@@ -281,8 +287,8 @@ def build_local(
         builder.cost += consensus_penalty(copy, z, y, rho)
         lam = builder.variable(f"L{c}", 2 * d, K, 0.0, np.inf)
         margin, norm_sq = certificate_terms(own - copy, lam, half)
-        add_certificate(builder, str(c), margin, norm_sq, s)
-    label = f"local_{num_copies}_{int(dynamic_copies)}"
+        add_certificate(builder, str(c), margin, norm_sq, pair_settings)
+    label = f"local_{num_copies}_{int(dynamic_copies)}_{pair_settings.collision}"
     if plugin != "ipopt":
         return builder.build(label, plugin, options or {})
     return builder.build(label, "ipopt", {**LOCAL_IPOPT_OPTIONS, **(options or {})},

@@ -24,6 +24,14 @@ def box_exterior_distance(offsets: np.ndarray, half_size: np.ndarray, axis: int 
     return np.linalg.norm(np.maximum(excess, 0.0), axis=axis)
 
 
+def box_signed_distance(offsets: np.ndarray, half_size: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Signed Euclidean distance of each offset to the box [-half, half] (negative inside, where
+    its magnitude is the penetration depth): :func:`point_box_distance` for many offsets at once."""
+    excess = np.abs(np.asarray(offsets, float)) - np.asarray(half_size, float)
+    outside = np.linalg.norm(np.maximum(excess, 0.0), axis=axis)
+    return np.where(outside > 0, outside, np.max(excess, axis=axis))
+
+
 def point_box_distance(offset: np.ndarray, half_size: np.ndarray) -> float:
     """Signed Euclidean distance of ``offset`` to the box [-half, half] (negative inside).
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from swarmpc.formulation.nlp import CompiledNLP, NLPSolution, shift_blocks
 from swarmpc.formulation.ocp import OCPSettings, build_local
-from swarmpc.model.geometry import box_exterior_distance
+from swarmpc.model.geometry import box_exterior_distance, box_signed_distance
 from swarmpc.solvers.base import PlanStep, fallback_plan
 from swarmpc.solvers.executors import Executor, SerialExecutor
 from swarmpc.solvers.guesses import agent_guess_blocks, inputs_from_states, pair_guess_blocks
@@ -112,6 +112,9 @@ class LocalRequest:
     carry: tuple[bool, ...] = ()
     """At a new step: per block (own, then each neighbour's), whether its multiplier is carried
     over (shifted) instead of restarting from zero; missing entries restart."""
+    rescue: bool = False
+    """A repair's last attempt: if the hard solves fail and the fallback plan breaks the separation
+    from the pinned plans, fly the least-violating plan instead (see ``LocalAgent._rescue``)."""
 
 
 @dataclass(frozen=True)
@@ -144,6 +147,7 @@ class LocalSolverLadder:
     def __init__(
         self, settings: OCPSettings, max_slots: int, dynamic_copies: bool,
         plugin: str = "ipopt", options: dict[str, Any] | None = None, warm_start: bool = False,
+        pair_collision: str | None = None,
     ) -> None:
         self.settings = settings
         self.max_slots = max_slots
@@ -151,12 +155,14 @@ class LocalSolverLadder:
         self.plugin = plugin
         self.options = options
         self.warm_start = warm_start
+        self.pair_collision = pair_collision
         self._built: dict[int, CompiledNLP] = {}
         self._lock = threading.Lock()
 
     def __getstate__(self) -> dict[str, Any]:
         return {"settings": self.settings, "max_slots": self.max_slots, "dynamic_copies": self.dynamic_copies,
-                "plugin": self.plugin, "options": self.options, "warm_start": self.warm_start}
+                "plugin": self.plugin, "options": self.options, "warm_start": self.warm_start,
+                "pair_collision": self.pair_collision}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__init__(**state)  # type: ignore[misc]
@@ -171,7 +177,7 @@ class LocalSolverLadder:
         """The built problem with ``slots`` copy slots (built now if this is its first use)."""
         if slots not in self._built:
             self._built[slots] = build_local(self.settings, slots, self.dynamic_copies, self.options, self.plugin,
-                                             self.warm_start)
+                                             self.warm_start, self.pair_collision)
         return self._built[slots]
 
     def solve(
@@ -195,7 +201,8 @@ class LocalSolverLadder:
 
 class LocalAgentFactory:
     """Picklable recipe for agents' local solvers (built where the agents live; agents made by
-    one factory object share its :class:`LocalSolverLadder`)."""
+    one factory object share its :class:`LocalSolverLadder` and, under hard constraints, its
+    rescue ladder: the same problems with soft pair constraints, built only when first needed)."""
 
     def __init__(
         self, settings: OCPSettings, slots: int, dynamic_copies: bool = True, seed_duals: bool = True,
@@ -206,9 +213,11 @@ class LocalAgentFactory:
         self.dynamic_copies = dynamic_copies
         self.seed_duals = seed_duals
         self.ladder = LocalSolverLadder(settings, slots, dynamic_copies, warm_start=warm_start)
+        self.rescue = (LocalSolverLadder(settings, slots, dynamic_copies, pair_collision="soft")
+                       if settings.collision == "hard" else None)
 
     def __call__(self, agent: int) -> LocalAgent:
-        return LocalAgent(agent, self.settings, self.ladder, self.dynamic_copies, self.seed_duals)
+        return LocalAgent(agent, self.settings, self.ladder, self.dynamic_copies, self.seed_duals, self.rescue)
 
 
 def trajectory_through(state: np.ndarray, z: np.ndarray, s: OCPSettings) -> np.ndarray:
@@ -235,9 +244,10 @@ class LocalAgent:
 
     def __init__(
         self, agent: int, settings: OCPSettings, nlp: LocalSolverLadder, dynamic_copies: bool,
-        seed_duals: bool = True,
+        seed_duals: bool = True, rescue: LocalSolverLadder | None = None,
     ) -> None:
         self.agent = agent
+        self.rescue = rescue
         self.seed_duals = seed_duals
         self.dynamic_copies = dynamic_copies
         self.settings = settings
@@ -335,6 +345,46 @@ class LocalAgent:
             lam_g=np.zeros_like(nlp.lbg), cost=retry.cost, success=True, status=KEPT_PLAN,
             iterations=0, solve_time=failed.solve_time + retry.solve_time,
         )
+
+    def _violation(self, states: np.ndarray, request: LocalRequest) -> float:
+        """How far a plan falls short of the separation d_min from the pinned neighbours' plans:
+        the shortfall of the signed distance (negative inside the delta box, so depth counts),
+        summed over neighbours and constrained steps; 0 for a plan clear of them all."""
+        assert request.neighbour_plans is not None
+        d, first = self.settings.dim, self.settings.first_constrained_step
+        others = request.neighbour_plans[0][:, first:, :d]
+        signed = box_signed_distance(states[None, first:, :d] - others, request.delta)
+        return float(np.maximum(self.settings.d_min - signed, 0.0).sum())
+
+    def _rescue(
+        self, request: LocalRequest, params: dict[str, Any], pinned: dict[str, np.ndarray], fallback: np.ndarray,
+    ) -> tuple[tuple[np.ndarray, np.ndarray] | None, float]:
+        """A plan for a repair whose hard solves failed and whose fallback plan (states
+        ``fallback``) violates the separation from a pinned neighbour's plan: the same problem
+        with soft pair constraints, always feasible, whose optimum violates the separation least.
+        It is flown instead of the fallback only when it violates less. Two agents failing
+        together (each blind to the other's fallback) and a pair already inside each other's
+        delta box (every hard problem infeasible, both on fallbacks for good) have no other way
+        out. Returns (states, inputs) or None, and the time spent."""
+        if self.rescue is None:
+            return None, 0.0
+        s, first = self.settings, self.settings.first_constrained_step
+        before = self._violation(fallback, request)
+        if before == 0.0:
+            return None, 0.0
+        soft = replace(s, collision="soft")
+        point = agent_guess_blocks("", fallback, s)
+        assert request.neighbour_plans is not None
+        for slot, other in enumerate(request.neighbour_plans[0]):
+            offsets = fallback[first:, : s.dim] - other[first:, : s.dim]
+            point.update(pair_guess_blocks(str(slot), offsets, request.delta, soft))
+        solution = self.rescue.solve(params, point, fixed=pinned, copies=len(request.neighbours))
+        if not solution.success:
+            return None, solution.solve_time
+        states, inputs = solution.x["X"].T, solution.x["U"].T
+        if self._violation(states, request) >= before:
+            return None, solution.solve_time
+        return (states, inputs), solution.solve_time
 
     def _warm_duals(self, request: LocalRequest, same_shape: bool) -> tuple[np.ndarray, np.ndarray] | None:
         """The last iterate's multipliers, for a later ADMM iteration of the same MPC step on the
@@ -450,6 +500,11 @@ class LocalAgent:
         else:
             previous = self._plan if self._plan is not None else (None, None)
             states, inputs = fallback_plan(request.state, previous[0], previous[1], s)
+            if pinned is not None and request.rescue:
+                rescued, rescue_time = self._rescue(request, params, pinned, states)
+                solution = replace(solution, solve_time=solution.solve_time + rescue_time)
+                if rescued is not None:
+                    states, inputs = rescued
             copies = request.z_neighbours.copy()
             fallback = True
             self._last = None
@@ -799,6 +854,17 @@ class ADMMSolver:
                 if not missing or round_ == REPAIR_ROUNDS - 1:
                     break
                 neighbours = couple(neighbours, missing)
+        stranded = self._stranded_fallbacks(results) if cfg.repair else []
+        if stranded:
+            # fallbacks that break the separation from another plan: those agents re-plan against
+            # every plan (rescued if their hard solves fail), then their neighbours against them
+            neighbours = couple(neighbours, stranded)
+            previous = results
+            results = self._repair(states, goals, guess, neighbours, z, rho, results,
+                                   agents=sorted({i for i, _ in stranded}))
+            solved = [r is not old for r, old in zip(results, previous)]
+            agent_times += [r.solve_time if new else 0.0 for r, new in zip(results, solved)]
+            failures += sum(new and not r.success for r, new in zip(results, solved))
         # next step's consensus starts from the plans actually applied: after a repair pass the
         # average z of a non-converged iterate is not what any agent flies
         self._z = np.array([r.own for r in results])
@@ -824,6 +890,22 @@ class ADMMSolver:
             copies=np.array([len(n) for n in neighbours], int),
         )
 
+    def _stranded_fallbacks(self, results: list[LocalResult]) -> list[tuple[int, int]]:
+        """(fallback agent, other agent) pairs whose plans come closer than d_min / 2 (signed
+        distance to the delta box) at a constrained step: a fallback nobody re-planned around,
+        or two agents failing together, each blind to the other's fallback."""
+        fell = [r.agent for r in results if r.fallback]
+        if not fell:
+            return []
+        own = np.array([r.own for r in results])  # (M, d, K)
+        half = np.asarray(self.delta, float).reshape(1, -1, 1)
+        pairs = []
+        for i in fell:
+            signed = box_signed_distance(own[i][None] - own, half, axis=1).min(axis=1)
+            signed[i] = np.inf
+            pairs += [(i, int(j)) for j in np.flatnonzero(signed < 0.5 * self.settings.d_min)]
+        return pairs
+
     def _carried_blocks(self, neighbours: list[tuple[int, ...]]) -> list[tuple[bool, ...]]:
         """Per agent, which of its multipliers (own block, then each neighbour's) the new step
         carries over (see ``ADMMConfig.carry_multipliers``); every holder of a block decides
@@ -847,7 +929,7 @@ class ADMMSolver:
     def _request(
         self, i: int, states: np.ndarray, goals: np.ndarray, guess: np.ndarray, neighbours: tuple[int, ...],
         z: np.ndarray, rho: float, rho_previous: float, new_step: bool,
-        plans: tuple[np.ndarray, np.ndarray] | None = None, carry: tuple[bool, ...] = (),
+        plans: tuple[np.ndarray, np.ndarray] | None = None, carry: tuple[bool, ...] = (), rescue: bool = False,
     ) -> LocalRequest:
         first = self.settings.first_constrained_step
         if plans is None:
@@ -872,11 +954,12 @@ class ADMMSolver:
             reuse_tol=self.config.reuse_tol,
             relaxation=self.config.relaxation,
             carry=carry,
+            rescue=rescue,
         )
 
     def _repair(
         self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray, neighbours: list[tuple[int, ...]],
-        z: np.ndarray, rho: float, results: list[LocalResult],
+        z: np.ndarray, rho: float, results: list[LocalResult], agents: list[int] | None = None,
     ) -> list[LocalResult]:
         """Consensus repair when ADMM stops at the cap: agents re-plan one after another against
         the others' current own plans (held fixed). Each agent respects the final plans of those
@@ -886,11 +969,13 @@ class ADMMSolver:
         plans, since a plan that respects all of them keeps every pair it is in feasible. If it
         still fails, its fallback is final, and the agents repaired before it never saw it: each
         neighbour whose plan comes within delta + d_min of that fallback re-plans once more
-        against every final plan (spread M = 128 had a collision without this; docs/admm.md)."""
+        against every final plan (spread M = 128 had a collision without this; docs/admm.md).
+        ``agents``: re-plan only these (in this order) and then their neighbours as above; None:
+        every coupled agent, highest index first."""
         first = self.settings.first_constrained_step
         repaired = list(results)
 
-        def replan(i: int) -> None:
+        def replan(i: int, rescue: bool = True) -> None:
             others = list(neighbours[i])
             plans = (
                 np.array([repaired[j].states for j in others]),
@@ -898,15 +983,18 @@ class ADMMSolver:
             )
             own_z = z.copy()
             own_z[i] = repaired[i].states[first:, : self.settings.dim].T
-            request = self._request(i, states, goals, guess, neighbours[i], own_z, rho, rho, False, plans)
+            request = self._request(i, states, goals, guess, neighbours[i], own_z, rho, rho, False, plans,
+                                    rescue=rescue)
             repaired[i] = self.executor.solve([request])[0]
 
-        order = list(range(self.num_agents))[::-1]  # a tie-break; see docs/admm.md
+        order = list(range(self.num_agents))[::-1] if agents is None else list(agents)  # tie-break: docs/admm.md
         retried: set[int] = set()
         for i in order:
             if not neighbours[i]:
                 continue
-            replan(i)
+            # a first failure re-plans at the end (its fallback is provisional); the retry and the
+            # re-plan of a stranded fallback are final and may rescue
+            replan(i, rescue=agents is not None or i in retried)
             if not repaired[i].success and i not in retried:
                 retried.add(i)
                 order.append(i)
