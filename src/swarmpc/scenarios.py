@@ -70,6 +70,14 @@ def circle(agents: int = 8, dim: int = 2, radius: float | None = None, delta: fl
             "stop": {"max_steps": 600}}
 
 
+SWARM_SOLVER = {"tol": 5e-3}
+"""ADMM settings of the swarm families (``random``, ``spread``): a consensus tolerance of 5 mm
+instead of 1 mm. Measured on random 3D M = 32 seed 0, whole run: 5.8 ADMM iterations per step
+instead of 11.2, per-agent compute 3.9 ms instead of 7.0 ms (median), 359 steps to the goals
+instead of 352, cost 383.8 against 393.5; the flown plans of coupled agents are kept d_min / 2
+apart by the stop's own check, not by the tolerance (docs/admm.md)."""
+
+
 def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.3,
                  min_gap: float = 0.5, clearance: float = 0.1, box_scale: float = 1.0,
                  **_: Any) -> dict[str, Any]:
@@ -102,7 +110,7 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
 
     starts, goals = sample(), sample()
     return {"name": f"random-{dim}d-{agents}-s{seed}", "dim": dim, **PAPER, "delta": delta,
-            "seed": seed, "limits": {"accel": 1.0},
+            "seed": seed, "limits": {"accel": 1.0}, "solver": dict(SWARM_SOLVER),
             "workspace": {"lower": lower.round(4).tolist(), "upper": upper.round(4).tolist()},
             "agents": [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()}
                        for s, g in zip(starts, goals)],

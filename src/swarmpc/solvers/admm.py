@@ -745,6 +745,21 @@ class ADMMSolver:
         # copies by more: half of d_min is kept as the margin, contact is at 0
         return bool(np.all(outside >= 0.5 * self.settings.d_min))
 
+    def coupled_plans_clear(self, results: list[LocalResult], neighbours: list[tuple[int, ...]]) -> bool:
+        """Every coupled pair's own plans keep half the OBCA separation (distance of the offset to
+        the delta box at least d_min / 2) at every constrained step. Each agent keeps d_min from
+        its copies, and consensus within ``tol`` (an RMS) bounds how far the copies sit from the
+        plans flown, not every single step: under a loose ``tol`` this check, not the tolerance,
+        is what keeps the flown plans apart, and ADMM iterates on until it holds."""
+        pairs = [(i, j) for i, n in enumerate(neighbours) for j in n if i < j]
+        if not pairs:
+            return True
+        first, second = np.array(pairs).T
+        own = np.array([r.own for r in results])  # (M, d, K)
+        half = np.asarray(self.delta, float).reshape(-1, 1)
+        outside = box_exterior_distance(own[first] - own[second], half, axis=1)
+        return bool(np.all(outside >= 0.5 * self.settings.d_min))
+
     def _checked_pairs(self, candidates: np.ndarray, states: np.ndarray, results: list[LocalResult]) -> np.ndarray:
         """``candidates`` plus every pair of an agent whose plan moved farther than its reach bound
         (a replayed fallback under a speed limit, or solver tolerance), so the conflict check never
@@ -821,7 +836,9 @@ class ADMMSolver:
             if converged:
                 checked = self._checked_pairs(candidates, states, results)
                 missing = self.conflicts(results, neighbours, checked)
-                if not missing and (cfg.engage_margin is None or self.plans_feasible(results, checked)):
+                if not missing and (cfg.engage_margin is None or self.plans_feasible(results, checked)) and (
+                    self.coupled_plans_clear(results, neighbours)
+                ):
                     break
                 converged = False
                 neighbours = couple(neighbours, missing)
