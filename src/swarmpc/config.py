@@ -165,7 +165,7 @@ class SolverConfig(_Frozen):
     method: Literal["admm", "centralized"] = "admm"
     rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
     max_iter: int = Field(default=100, ge=1, description="ADMM iteration cap per MPC step")
-    tol: float = Field(default=1e-3, gt=0, description="ADMM primal/dual residual tolerance")
+    tol: float = Field(default=1e-3, gt=0, description="ADMM primal/dual residual tolerance [m] (the random and spread built-ins use 0.005)")
     adaptive_rho: bool = Field(default=False, description="residual balancing of rho")
     coupling_margin: float | None = Field(
         default=None, ge=0,
