@@ -731,30 +731,28 @@ class ADMMSolver:
 
     def plans_feasible(self, results: list[LocalResult], pairs: np.ndarray) -> bool:
         """Every agent's solve succeeded and, for every pair in ``pairs`` (M x M, bool), the own
-        plans keep at least half the OBCA separation (Euclidean distance of the offset to the delta
-        box at least d_min / 2) at every constrained step."""
+        plans keep at least half the OBCA separation (see :meth:`_own_plans_apart`)."""
         if not all(r.success and not r.fallback for r in results):
             return False
         first, second = np.nonzero(np.triu(pairs, k=1))
-        if first.size == 0:
-            return True
-        own = np.array([r.own for r in results])  # (M, d, K)
-        half = np.asarray(self.delta, float).reshape(-1, 1)
-        outside = box_exterior_distance(own[first] - own[second], half, axis=1)
-        # an RMS consensus within tol still lets single steps of two own plans differ from the
-        # copies by more: half of d_min is kept as the margin, contact is at 0
-        return bool(np.all(outside >= 0.5 * self.settings.d_min))
+        return self._own_plans_apart(results, first, second)
 
     def coupled_plans_clear(self, results: list[LocalResult], neighbours: list[tuple[int, ...]]) -> bool:
-        """Every coupled pair's own plans keep half the OBCA separation (distance of the offset to
-        the delta box at least d_min / 2) at every constrained step. Each agent keeps d_min from
-        its copies, and consensus within ``tol`` (an RMS) bounds how far the copies sit from the
-        plans flown, not every single step: under a loose ``tol`` this check, not the tolerance,
-        is what keeps the flown plans apart, and ADMM iterates on until it holds."""
-        pairs = [(i, j) for i, n in enumerate(neighbours) for j in n if i < j]
-        if not pairs:
+        """Every coupled pair's own plans keep half the OBCA separation (see
+        :meth:`_own_plans_apart`). Each agent keeps d_min from its copies, and consensus within
+        ``tol`` (an RMS) bounds how far the copies sit from the plans flown, not every single step:
+        under a loose ``tol`` this check, not the tolerance, is what keeps the flown plans apart,
+        and ADMM iterates on until it holds."""
+        pairs = np.array([(i, j) for i, n in enumerate(neighbours) for j in n if i < j], int).reshape(-1, 2)
+        return self._own_plans_apart(results, pairs[:, 0], pairs[:, 1])
+
+    def _own_plans_apart(self, results: list[LocalResult], first: np.ndarray, second: np.ndarray) -> bool:
+        """The own plans of agents ``first[k]`` and ``second[k]`` keep a Euclidean distance of the
+        offset to the delta box of at least d_min / 2 at every constrained step. An RMS consensus
+        within tol still lets single steps of two own plans differ from the copies by more: half
+        of d_min is kept as the margin, contact is at 0."""
+        if first.size == 0:
             return True
-        first, second = np.array(pairs).T
         own = np.array([r.own for r in results])  # (M, d, K)
         half = np.asarray(self.delta, float).reshape(-1, 1)
         outside = box_exterior_distance(own[first] - own[second], half, axis=1)
@@ -862,9 +860,9 @@ class ADMMSolver:
                 previous = results
                 results = self._repair(states, goals, guess, neighbours, z, rho, results)
                 # later passes count only the agents they re-solved
-                solved = [round_ == 0 or r is not old for r, old in zip(results, previous)]
-                agent_times += [r.solve_time if new else 0.0 for r, new in zip(results, solved)]
-                failures += sum(new and not r.success for r, new in zip(results, solved))
+                times, failed = self._new_solves(results, previous, every=round_ == 0)
+                agent_times += times
+                failures += failed
                 # the repair only re-plans against neighbours: couple any candidate pair whose
                 # repaired plans now conflict and repair again
                 missing = self.conflicts(results, neighbours, self._checked_pairs(candidates, states, results))
@@ -879,9 +877,9 @@ class ADMMSolver:
             previous = results
             results = self._repair(states, goals, guess, neighbours, z, rho, results,
                                    agents=sorted({i for i, _ in stranded}))
-            solved = [r is not old for r, old in zip(results, previous)]
-            agent_times += [r.solve_time if new else 0.0 for r, new in zip(results, solved)]
-            failures += sum(new and not r.success for r, new in zip(results, solved))
+            times, failed = self._new_solves(results, previous)
+            agent_times += times
+            failures += failed
         # next step's consensus starts from the plans actually applied: after a repair pass the
         # average z of a non-converged iterate is not what any agent flies
         self._z = np.array([r.own for r in results])
@@ -906,6 +904,16 @@ class ADMMSolver:
             rho_history=rhos,
             copies=np.array([len(n) for n in neighbours], int),
         )
+
+    @staticmethod
+    def _new_solves(
+        results: list[LocalResult], previous: list[LocalResult], every: bool = False,
+    ) -> tuple[np.ndarray, int]:
+        """Solve time per agent and failed solves of the answers a repair pass produced (those not
+        carried over from ``previous``; ``every``: all of them)."""
+        new = [every or r is not old for r, old in zip(results, previous)]
+        times = np.array([r.solve_time if fresh else 0.0 for r, fresh in zip(results, new)])
+        return times, sum(fresh and not r.success for r, fresh in zip(results, new))
 
     def _stranded_fallbacks(self, results: list[LocalResult]) -> list[tuple[int, int]]:
         """(fallback agent, other agent) pairs whose plans come closer than d_min / 2 (signed
