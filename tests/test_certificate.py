@@ -60,7 +60,10 @@ def polytope(seed, dim):
 def test_hard_certificate_equals_distance_outside(seed, dim, scale):
     G, g, vertices = polytope(seed, dim)
     direction = np.random.default_rng(seed + 1).normal(size=dim)
-    point = vertices.mean(axis=0) + direction / np.linalg.norm(direction) * (np.abs(vertices).max() + scale)
+    centre = vertices.mean(axis=0)
+    # beyond the ball round the vertices' mean that holds every vertex: outside the polytope
+    reach = np.linalg.norm(vertices - centre, axis=1).max()
+    point = centre + direction / np.linalg.norm(direction) * (reach + scale)
     assert np.any(G @ point > g)
     reference = projection_distance(point, vertices)
     assert best_certificate(point, G, g, soft=False) == pytest.approx(reference, abs=1e-5)
