@@ -108,10 +108,10 @@ def test_slow_approach_next_to_a_parked_agent_is_not_a_jam():
         assert np.array_equal(resolver.goals(step, states, goals), goals)
     assert resolver.events == []
     assert resolver._stalled.max() == 0
-    # the same crawl away from the goal (no progress) is a jam
+    # the same crawl away from a goal another agent sits on (no progress) is a jam
     stuck = DeadlockResolver(2, 2)
     for step in range(30):
-        states = np.array([[-0.3 - 0.003 * step, 0.0, -0.03, 0.0], [0.4, 0.0, 0.0, 0.0]])
+        states = np.array([[-0.3 - 0.003 * step, 0.0, -0.03, 0.0], [0.2, 0.0, 0.0, 0.0]])
         stuck.goals(step, states, goals)
     assert stuck.events and stuck.events[0] == (stuck.policy.patience - 1, 0)
 
@@ -178,3 +178,65 @@ def test_watching_progress_leaves_a_blocked_agent_that_gets_closer_alone():
         states = np.array([[-1.5 + 0.004 * step, 0.0, 0.1, 0.0], [-1.0, 0.0, 0.0, 0.0]])
         resolver.goals(step, states, goals)
     assert resolver.events == []
+
+
+def test_an_agent_near_a_free_goal_is_never_detoured_but_one_near_an_occupied_goal_is():
+    # agent 0 crawls 0.25 m from its goal past agent 1, parked 0.43 m (inf-norm) from that goal
+    goals = np.array([[0.25, 0.0, 0, 0], [0.25, 0.43, 0, 0]])
+    states = np.array([[0.0, 0.0, 0.01, 0.0], [0.25, 0.43, 0.0, 0.0]])
+    resolver = DeadlockResolver(2, 2, clearance=0.35)
+    assert resolver.blocked(states[:, :2], goals[:, :2])[0]  # near its corridor, within the margin
+    assert resolver.goal_free(states[:, :2], goals[:, :2])[0]
+    for step in range(30):
+        resolver.goals(step, states, goals)
+    assert resolver.events == []
+    # the same agent with agent 1 sitting 0.3 m from its goal: the goal cannot be held, detour
+    occupied = states.copy()
+    occupied[1, 1] = 0.3
+    crowded = DeadlockResolver(2, 2, clearance=0.35)
+    assert not crowded.goal_free(occupied[:, :2], goals[:, :2])[0]
+    for step in range(30):
+        crowded.goals(step, occupied, goals)
+    assert (crowded.policy.patience - 1, 0) in crowded.events
+
+
+def _knotted_pair() -> tuple[np.ndarray, np.ndarray]:
+    """Two agents in 3D, each sitting 0.25 m from the other's goal, side by side near the floor."""
+    states = np.array([[0.0, 0.0, 0.4, 0.01, 0, 0], [0.0, 0.36, 0.4, -0.01, 0, 0]])
+    goals = np.array([[0.0, 0.6, 0.4, 0, 0, 0], [0.0, -0.25, 0.4, 0, 0, 0]])
+    return states, goals
+
+
+def test_a_knot_lifts_one_member_out_of_its_layer_while_the_other_waits():
+    states, goals = _knotted_pair()
+    bounds = (np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 2.2]))
+    resolver = DeadlockResolver(2, 3, clearance=0.35, bounds=bounds)
+    assert resolver.knots(states[:, :3], goals[:, :3], np.ones(2, bool), np.ones(2, bool))
+    patience = resolver.policy.patience
+    for step in range(patience):
+        out = resolver.goals(step, states, goals)
+    assert resolver.events == [(patience - 1, 0)]  # one member only, the lowest index
+    # agent 0 rises (the floor is 0.2 m below it) and heads over its own goal
+    assert out[0, 2] == pytest.approx(0.4 + resolver.policy.lift)
+    assert np.allclose(out[0, :2], goals[0, :2]) and np.array_equal(out[1], goals[1])
+    for step in range(patience, resolver.policy.lift_hold - 1):
+        resolver.goals(step, states, goals)
+    assert len(resolver.events) == 1  # agent 1 waits for its goal to clear, no detour of its own
+    # the right-hand rule (2D, or no workspace given) turns both members instead
+    plain = DeadlockResolver(2, 3, clearance=0.35)
+    for step in range(patience):
+        plain.goals(step, states, goals)
+    assert sorted(plain.events) == [(patience - 1, 0), (patience - 1, 1)]
+
+
+def test_a_knot_near_the_ceiling_lifts_downwards_and_a_second_knot_lifts_the_other_member():
+    states, goals = _knotted_pair()
+    states[:, 2] = goals[:, 2] = 2.0
+    bounds = (np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 2.2]))
+    resolver = DeadlockResolver(2, 3, clearance=0.35, bounds=bounds)
+    lift_hold = resolver.policy.lift_hold
+    for step in range(lift_hold + 2 * resolver.policy.patience):
+        out = resolver.goals(step, states, goals)
+        if step == resolver.policy.patience - 1:
+            assert out[0, 2] == pytest.approx(2.0 - resolver.policy.lift)
+    assert [agent for _, agent in resolver.events] == [0, 1]

@@ -81,7 +81,9 @@ def simulate(
     solver = solver or make_solver(scn, settings, executor)
     model = DoubleIntegrator(scn.dim, scn.dt, scn.discretization)
     guesser = GuessProvider(scn, settings)
-    deadlocks = DeadlockResolver(scn.num_agents, scn.dim, seed=scn.seed, clearance=planner_delta(scn) + scn.d_min)
+    deadlocks = DeadlockResolver(
+        scn.num_agents, scn.dim, seed=scn.seed, clearance=planner_delta(scn) + scn.d_min, bounds=scn.bounds()
+    )
     noise = DisturbanceModel.from_scenario(scn)
     disturbances: list[np.ndarray] = []
     goals = scn.goal_states()
