@@ -29,6 +29,19 @@ its further detours are escalated and de-synchronised: the angle is jittered by 
 hold stretched by a random factor in [1, 1 + ``stretch``], drawn from a generator seeded by the
 scenario seed, so the agents of a jam return at different times and pass one by one. Runs whose
 agents detour fewer times draw nothing and are unchanged.
+
+An agent within ``approach_radius`` of a goal that no other agent occupies (every other agent at
+least the clearance away from it) is never detoured: the MPC brings it in, and a detour there only
+sends it round its goal (random 3D, M = 64: agents orbiting a free goal 0.2-0.4 m out for
+hundreds of steps, detoured again each time they slowed down next to a parked neighbour).
+
+What is left near the goals are knots: two or three agents each sitting on the next one's goal,
+sliding to and fro together. Turning them all right only moves the knot round in its layer. In 3D,
+with the workspace known, a cycle of unsettled agents each within the clearance plus
+``corridor_margin`` of the previous one's goal is untied instead: the member lifted least so far
+climbs (or descends, whichever side has more room) by ``lift`` and heads over its own goal for
+``lift_hold`` steps, while the others keep their goals and wait; the layer clears and each slides
+into its slot.
 """
 
 from __future__ import annotations
