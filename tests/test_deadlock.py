@@ -240,3 +240,37 @@ def test_a_knot_near_the_ceiling_lifts_downwards_and_a_second_knot_lifts_the_oth
         if step == resolver.policy.patience - 1:
             assert out[0, 2] == pytest.approx(2.0 - resolver.policy.lift)
     assert [agent for _, agent in resolver.events] == [0, 1]
+
+
+def _corridor_swap(max_steps: int):
+    """Two drones swap places in a 0.2 m wide corridor (each starts on the other's goal): they
+    can pass only over or under each other."""
+    from swarmpc.config import scenario_from_dict
+
+    return scenario_from_dict({
+        "name": "corridor-swap", "dim": 3, "dt": 0.1, "horizon": 10, "delta": 0.3,
+        "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}, "limits": {"accel": 1.0},
+        "solver": {"method": "centralized"},
+        "workspace": {"lower": [-0.1, -1.0, 0.2], "upper": [0.1, 1.0, 1.6]},
+        "agents": [{"start": [0.0, -0.2, 0.4], "goal": [0.0, 0.2, 0.4]},
+                   {"start": [0.0, 0.2, 0.4], "goal": [0.0, -0.2, 0.4]}],
+        "stop": {"goal_tolerance": 0.1, "max_steps": max_steps},
+    })
+
+
+def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_path, monkeypatch):
+    import swarmpc.simulation.loop as loop
+    from swarmpc.simulation.deadlock import DeadlockPolicy
+
+    scn = _corridor_swap(300)
+    summary, arrays = load_folder(write_run(simulate(scn), tmp_path / "lift"))
+    states = arrays["states"]
+    assert summary["all_reached"] and summary["steps"] < 200
+    collisions, ratio = recount_collisions(states, arrays["delta"])
+    assert collisions == 0 and ratio >= 1.0
+    assert states[:, :, 2].max() > 0.4 + 0.3  # one of them went over the other
+    # the right-hand rule alone turns both in the corridor's plane, and they never pass
+    monkeypatch.setattr(loop, "DeadlockResolver", lambda *args, **kwargs: DeadlockResolver(
+        *args, policy=DeadlockPolicy(untie_knots=False), **kwargs))
+    summary = load_folder(write_run(simulate(scn), tmp_path / "turn"))[0]
+    assert not summary["all_reached"] and summary["deadlocks"] >= 10
