@@ -34,16 +34,24 @@ def test_sigint_gives_a_complete_interrupted_folder(tmp_path):
     assert summary["steps"] == inputs.shape[0] == states.shape[0] - 1 >= 1
 
 
-@pytest.mark.parametrize("delay", [0.02, 0.1, 0.25])
+# The console script's own wrapper, plus one line that says the entry point is loaded: a Ctrl-C
+# before that line lands in the interpreter's start-up (runpy, site), before any of the package's
+# code runs, which no program can turn into one line (on a loaded machine a fixed 20 ms delay
+# after the launch sometimes landed there).
+ENTRY_POINT = "import sys; from swarmpc._launch import main; print('loaded', flush=True); main()"
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.02, 0.1, 0.25])
 def test_sigint_while_starting_up_is_one_line_not_a_traceback(tmp_path, delay):
     """Ctrl-C while the command line is still importing its libraries: status 130 and the same
     one line as later on; nothing written. (Python may end such a process by SIGINT itself after
     the line, which a shell reports as the same status 130.)"""
     out = tmp_path / "run"
     process = subprocess.Popen(
-        [sys.executable, "-m", "swarmpc", "run", "paper-2d", "--out", str(out), "--quiet"],
+        [sys.executable, "-c", ENTRY_POINT, "run", "paper-2d", "--out", str(out), "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
+    assert process.stdout is not None and process.stdout.readline() == "loaded\n"
     time.sleep(delay)
     process.send_signal(signal.SIGINT)
     _stdout, stderr = process.communicate(timeout=120)
@@ -81,3 +89,31 @@ def test_an_import_error_raised_by_a_ctrl_c_counts_as_the_ctrl_c():
     assert caused_by_interrupt(failing_import("context"))
     assert caused_by_interrupt(KeyboardInterrupt())
     assert not caused_by_interrupt(ImportError("no module named casadi"))
+
+
+def test_a_ctrl_c_the_import_machinery_ignores_still_ends_the_command(monkeypatch, capsys):
+    """A Ctrl-C inside a callback of the import machinery is reported as "ignored" and the import
+    goes on; the entry point still ends with the one line and status 130, no traceback."""
+    import types
+
+    from swarmpc import _launch
+
+    class Unraisable:
+        exc_type, exc_value, exc_traceback, err_msg, object = KeyboardInterrupt, KeyboardInterrupt(), None, None, None
+
+    fake_cli = types.ModuleType("swarmpc.cli")
+
+    def main() -> None:
+        raise AssertionError("the command ran after Ctrl-C")
+
+    def attribute(name: str):
+        sys.unraisablehook(Unraisable())  # what the interpreter does with the ignored interrupt
+        return main
+
+    fake_cli.__getattr__ = attribute  # type: ignore[method-assign]
+    monkeypatch.setitem(sys.modules, "swarmpc.cli", fake_cli)
+    with pytest.raises(SystemExit) as stop:
+        _launch.main()
+    assert stop.value.code == _launch.INTERRUPTED
+    assert capsys.readouterr().err == "swarmpc: interrupted\n"
+    assert sys.unraisablehook is sys.__unraisablehook__
