@@ -76,10 +76,12 @@ class DeadlockPolicy:
     spare_free_goals: bool = True
     """Never detour an agent within ``approach_radius`` of a goal no other agent occupies."""
     untie_knots: bool = True
-    """In 3D, resolve a cycle of stalled agents each sitting on the next one's goal by lifting
-    one of them out of the layer (the others wait) instead of turning them all right."""
+    """In 3D, resolve a cycle of agents not at their goals, each sitting on the next one's goal, by
+    lifting one of them out of the layer (the others wait) instead of turning them all right."""
     lift: float = 0.5
+    """How far (m) the lifted member of a knot climbs or descends."""
     lift_hold: int = 40
+    """Steps the lift lasts, and the other members wait."""
 
 
 def right_turn(direction: np.ndarray, angle: float) -> np.ndarray:
@@ -139,12 +141,17 @@ class DeadlockResolver:
         inside = np.all(np.abs(corridor[:, None] - positions[None, :, None]) < reach, axis=3)
         return np.any(near & ahead & inside.any(axis=2), axis=1)
 
+    @staticmethod
+    def _goal_gaps(positions: np.ndarray, goals: np.ndarray, reach: np.ndarray) -> np.ndarray:
+        """[i, j]: how far agent j is from goal i, in units of ``reach`` per axis (inf-norm; below 1
+        means j sits on i's goal); inf for an agent's own goal."""
+        gaps = np.max(np.abs(goals[:, None, :] - positions[None, :, :]) / reach, axis=2)
+        np.fill_diagonal(gaps, np.inf)
+        return gaps
+
     def goal_free(self, positions: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Per agent: its goal could be held now (every other agent at least the clearance away)."""
-        gaps = np.abs(goals[:, None, :] - positions[None, :, :])  # [i, j]: goal i to agent j
-        occupied = np.all(gaps < self.clearance, axis=2)
-        np.fill_diagonal(occupied, False)
-        return ~occupied.any(axis=1)
+        return self._goal_gaps(positions, goals, self.clearance).min(axis=1) >= 1.0
 
     def knots(self, positions: np.ndarray, goals: np.ndarray, unsettled: np.ndarray,
               due: np.ndarray) -> list[np.ndarray]:
@@ -157,8 +164,7 @@ class DeadlockResolver:
         """
         if not self.policy.untie_knots or self.dim != 3 or self.bounds is None:
             return []
-        gaps = np.max(np.abs(goals[:, None, :] - positions[None, :, :]) / (self.clearance + self.policy.corridor_margin), axis=2)
-        np.fill_diagonal(gaps, np.inf)
+        gaps = self._goal_gaps(positions, goals, self.clearance + self.policy.corridor_margin)
         occupant = np.where(gaps.min(axis=1) < 1.0, gaps.argmin(axis=1), -1)
         cycles: list[np.ndarray] = []
         seen: set[int] = set()
