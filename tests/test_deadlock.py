@@ -8,7 +8,7 @@ import pytest
 
 from conftest import load_folder, recount_collisions
 from swarmpc.scenarios import builtin_scenario
-from swarmpc.simulation.deadlock import DeadlockResolver
+from swarmpc.simulation.deadlock import DeadlockPolicy, DeadlockResolver
 from swarmpc.simulation.loop import simulate
 from swarmpc.simulation.results import write_run
 
@@ -242,6 +242,35 @@ def test_a_knot_near_the_ceiling_lifts_downwards_and_a_second_knot_lifts_the_oth
     assert [agent for _, agent in resolver.events] == [0, 1]
 
 
+def test_a_knot_boxed_in_from_above_steps_out_sideways():
+    states, goals = _knotted_pair()
+    # agents parked 0.45 m over the pair's layer (the floor 0.2 m under it): no way over or under
+    parked = np.array([[0.0, y, 0.85, 0, 0, 0] for y in (-0.3, 0.0, 0.3, 0.6)])
+    states, goals = np.vstack([states, parked]), np.vstack([goals, parked])
+    bounds = (np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 2.2]))
+    resolver = DeadlockResolver(len(states), 3, clearance=0.35, bounds=bounds)
+    for step in range(resolver.policy.patience):
+        out = resolver.goals(step, states, goals)
+    assert resolver.events == [(resolver.policy.patience - 1, 0)]
+    # beside its goal, across the swap's axis, in the layer
+    assert abs(out[0, 0]) == pytest.approx(resolver.policy.lift)
+    assert out[0, 1] == pytest.approx(goals[0, 1]) and out[0, 2] == pytest.approx(0.4)
+    # without side steps the member climbs into the parked agents' layer as before
+    upward = DeadlockResolver(len(states), 3, clearance=0.35, bounds=bounds,
+                              policy=DeadlockPolicy(side_steps=False))
+    for step in range(upward.policy.patience):
+        out = upward.goals(step, states, goals)
+    assert out[0, 2] == pytest.approx(0.4 + upward.policy.lift)
+
+
+def test_path_room_measures_the_gap_to_the_nearest_agent_in_clearances():
+    resolver = DeadlockResolver(2, 3, clearance=np.array([0.3, 0.3, 0.6]))
+    start, end = np.zeros(3), np.array([1.0, 0.0, 0.0])
+    others = np.array([[0.5, 0.6, 0.0], [2.0, 0.0, 0.0]])
+    assert resolver._path_room(start, end, others) == pytest.approx(2.0)  # 0.6 m across in y, 0.3 per clearance
+    assert resolver._path_room(start, end, np.array([[0.5, 0.0, 0.3]])) == pytest.approx(0.5)
+
+
 def _corridor_swap(max_steps: int):
     """Two drones swap places in a 0.2 m wide corridor (each starts on the other's goal): they
     can pass only over or under each other."""
@@ -260,7 +289,6 @@ def _corridor_swap(max_steps: int):
 
 def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_path, monkeypatch):
     import swarmpc.simulation.loop as loop
-    from swarmpc.simulation.deadlock import DeadlockPolicy
 
     scn = _corridor_swap(300)
     summary, arrays = load_folder(write_run(simulate(scn), tmp_path / "lift"))

@@ -82,6 +82,9 @@ class DeadlockPolicy:
     """How far (m) the lifted member of a knot climbs or descends."""
     lift_hold: int = 40
     """Steps the lift lasts, and the other members wait."""
+    side_steps: bool = True
+    """When the vertical way out of a knot runs into a parked neighbour, step out sideways instead
+    (the axis and side that keep farthest from the others)."""
 
 
 def right_turn(direction: np.ndarray, angle: float) -> np.ndarray:
@@ -179,17 +182,55 @@ class DeadlockResolver:
                 cycles.append(np.array(path[path.index(node):]))
         return cycles
 
+    def _path_room(self, start: np.ndarray, end: np.ndarray, others: np.ndarray) -> float:
+        """Smallest gap, in units of the clearance per axis (inf-norm), between the straight path
+        from ``start`` to ``end`` and the other agents (below 1: the path runs into one of them)."""
+        path = start + np.linspace(0.0, 1.0, 11)[:, None] * (end - start)
+        if others.size == 0:
+            return np.inf
+        return float(np.max(np.abs(path[:, None, :] - others[None]) / self.clearance, axis=2).min())
+
+    def _way_out(self, lifter: int, positions: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """Where the lifted member of a knot heads: over (or under, the roomier side) its own goal,
+        or, when that path runs into a parked neighbour, beside its goal on the axis and side whose
+        path keeps farthest from the others (a pair swapping in a layer with agents parked just
+        above and below both can only pass side by side)."""
+        p = self.policy
+        lower, upper = self.bounds  # type: ignore[misc]
+        here, goal = positions[lifter], goals[lifter]
+        others = np.delete(positions, lifter, axis=0)
+
+        def target(axis: int, sign: float) -> tuple[np.ndarray, float]:
+            room = (upper[axis] - here[axis]) if sign > 0 else (here[axis] - lower[axis])
+            out = goal.copy()
+            out[axis] = here[axis] + sign * min(p.lift, max(room, 0.0))
+            return out, min(p.lift, max(room, 0.0))
+
+        up = upper[2] - here[2] >= here[2] - lower[2]
+        vertical, _ = target(2, 1.0 if up else -1.0)
+        best, best_room = vertical, self._path_room(here, vertical, others)
+        if best_room >= 1.0 or not p.side_steps:
+            return vertical
+        along = int(np.argmax(np.abs(goal - here)))
+        for axis in range(self.dim):
+            for sign in (1.0, -1.0):
+                if axis == along:
+                    continue
+                candidate, height = target(axis, sign)
+                if height < self.clearance[axis]:
+                    continue  # too close to the wall to get past anyone
+                room = self._path_room(here, candidate, others)
+                if room > best_room:
+                    best, best_room = candidate, room
+        return best
+
     def _untie(self, step: int, cycle: np.ndarray, positions: np.ndarray, goals: np.ndarray) -> None:
-        """Lift the knot's member lifted least so far (vertically, towards the roomier side, then
-        over its own goal) for ``lift_hold`` steps; the others wait for their goals to clear."""
+        """Lift the knot's member lifted least so far out of the knot's layer (see ``_way_out``)
+        for ``lift_hold`` steps; the others wait for their goals to clear."""
         p = self.policy
         lifter = int(cycle[np.lexsort((cycle, self._lifts[cycle]))[0]])
-        lower, upper = self.bounds  # type: ignore[misc]
-        z = positions[lifter, 2]
-        up = upper[2] - z >= z - lower[2]
-        height = min(p.lift, (upper[2] - z) if up else (z - lower[2]))
         target = goals[lifter].copy()
-        target[2] = z + height if up else z - height
+        target[: self.dim] = self._way_out(lifter, positions, goals[:, : self.dim])
         self._lifts[lifter] += 1
         self._detour_goal[lifter] = target
         self._detour_left[lifter] = p.lift_hold
