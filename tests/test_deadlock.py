@@ -271,20 +271,25 @@ def test_path_room_measures_the_gap_to_the_nearest_agent_in_clearances():
     assert resolver._path_room(start, end, np.array([[0.5, 0.0, 0.3]])) == pytest.approx(0.5)
 
 
-def _corridor_swap(max_steps: int):
-    """Two drones swap places in a 0.2 m wide corridor (each starts on the other's goal): they
-    can pass only over or under each other."""
+def _swap(name: str, lower: list[float], upper: list[float], first: list[float], second: list[float],
+          max_steps: int):
+    """Two drones swap places (each starts on the other's goal) in a box workspace."""
     from swarmpc.config import scenario_from_dict
 
     return scenario_from_dict({
-        "name": "corridor-swap", "dim": 3, "dt": 0.1, "horizon": 10, "delta": 0.3,
+        "name": name, "dim": 3, "dt": 0.1, "horizon": 10, "delta": 0.3,
         "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}, "limits": {"accel": 1.0},
         "solver": {"method": "centralized"},
-        "workspace": {"lower": [-0.1, -1.0, 0.2], "upper": [0.1, 1.0, 1.6]},
-        "agents": [{"start": [0.0, -0.2, 0.4], "goal": [0.0, 0.2, 0.4]},
-                   {"start": [0.0, 0.2, 0.4], "goal": [0.0, -0.2, 0.4]}],
+        "workspace": {"lower": lower, "upper": upper},
+        "agents": [{"start": first, "goal": second}, {"start": second, "goal": first}],
         "stop": {"goal_tolerance": 0.1, "max_steps": max_steps},
     })
+
+
+def _corridor_swap(max_steps: int):
+    """A swap in a 0.2 m wide corridor: the drones can pass only over or under each other."""
+    return _swap("corridor-swap", [-0.1, -1.0, 0.2], [0.1, 1.0, 1.6], [0.0, -0.2, 0.4], [0.0, 0.2, 0.4],
+                 max_steps)
 
 
 def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_path, monkeypatch):
@@ -302,3 +307,21 @@ def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_p
         *args, policy=DeadlockPolicy(untie_knots=False), **kwargs))
     summary = load_folder(write_run(simulate(scn), tmp_path / "turn"))[0]
     assert not summary["all_reached"] and summary["deadlocks"] >= 10
+
+
+def test_a_swap_under_a_low_ceiling_is_untied_by_a_side_step(tmp_path, monkeypatch):
+    import swarmpc.simulation.loop as loop
+
+    # 0.4 m between floor and ceiling: no room to pass over or under, only beside
+    scn = _swap("low-ceiling-swap", [-1.0, -1.0, 0.2], [1.0, 1.0, 0.6], [-0.2, 0.0, 0.4], [0.2, 0.0, 0.4], 300)
+    summary, arrays = load_folder(write_run(simulate(scn), tmp_path / "side"))
+    states = arrays["states"]
+    assert summary["all_reached"] and summary["steps"] < 250
+    collisions, ratio = recount_collisions(states, arrays["delta"])
+    assert collisions == 0 and ratio >= 1.0
+    assert np.abs(states[:, :, 1]).max() > 0.3  # one of them went round the other in the layer
+    # lifting only: the 0.2 m to the ceiling is not enough to pass, and the swap is never made
+    monkeypatch.setattr(loop, "DeadlockResolver", lambda *args, **kwargs: DeadlockResolver(
+        *args, policy=DeadlockPolicy(side_steps=False), **kwargs))
+    summary = load_folder(write_run(simulate(scn), tmp_path / "lift"))[0]
+    assert not summary["all_reached"] and summary["deadlocks"] >= 4

@@ -41,7 +41,10 @@ with the workspace known, a cycle of unsettled agents each within the clearance 
 ``corridor_margin`` of the previous one's goal is untied instead: the member lifted least so far
 climbs (or descends, whichever side has more room) by ``lift`` and heads over its own goal for
 ``lift_hold`` steps, while the others keep their goals and wait; the layer clears and each slides
-into its slot.
+into its slot. Where that way runs into agents parked just over and under the knot (or the
+ceiling is too close), the member steps out sideways instead, across the line to its goal, on
+the side that keeps farthest from the others (random 3D, M = 64, seed 4: a pair swapping in a
+layer between parked agents, lifted in turn to the step cap; side by side, they pass).
 """
 
 from __future__ import annotations
