@@ -188,9 +188,9 @@ class DeadlockResolver:
     def _path_room(self, start: np.ndarray, end: np.ndarray, others: np.ndarray) -> float:
         """Smallest gap, in units of the clearance per axis (inf-norm), between the straight path
         from ``start`` to ``end`` and the other agents (below 1: the path runs into one of them)."""
-        path = start + np.linspace(0.0, 1.0, 11)[:, None] * (end - start)
         if others.size == 0:
             return np.inf
+        path = start + np.linspace(0.0, 1.0, 11)[:, None] * (end - start)
         return float(np.max(np.abs(path[:, None, :] - others[None]) / self.clearance, axis=2).min())
 
     def _way_out(self, lifter: int, positions: np.ndarray, goals: np.ndarray) -> np.ndarray:
@@ -204,10 +204,13 @@ class DeadlockResolver:
         others = np.delete(positions, lifter, axis=0)
 
         def target(axis: int, sign: float) -> tuple[np.ndarray, float]:
+            """The point ``lift`` (or as far as the workspace allows) off ``here`` on one axis,
+            over the goal on the others, and how far off it is."""
             room = (upper[axis] - here[axis]) if sign > 0 else (here[axis] - lower[axis])
+            height = min(p.lift, max(room, 0.0))
             out = goal.copy()
-            out[axis] = here[axis] + sign * min(p.lift, max(room, 0.0))
-            return out, min(p.lift, max(room, 0.0))
+            out[axis] = here[axis] + sign * height
+            return out, height
 
         up = upper[2] - here[2] >= here[2] - lower[2]
         vertical, _ = target(2, 1.0 if up else -1.0)
@@ -215,10 +218,8 @@ class DeadlockResolver:
         if best_room >= 1.0 or not p.side_steps:
             return vertical
         along = int(np.argmax(np.abs(goal - here)))
-        for axis in range(self.dim):
+        for axis in (a for a in range(self.dim) if a != along):
             for sign in (1.0, -1.0):
-                if axis == along:
-                    continue
                 candidate, height = target(axis, sign)
                 if height < self.clearance[axis]:
                     continue  # too close to the wall to get past anyone
