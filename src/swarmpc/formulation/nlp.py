@@ -8,7 +8,7 @@ warm-start the next solve. The solver is built once; every later call only chang
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
@@ -48,12 +48,15 @@ class _Layout:
         return block
 
     def pack(self, values: dict[str, Any], default: np.ndarray | float = 0.0) -> np.ndarray:
-        out = np.array(np.broadcast_to(default, (self.size,)), dtype=float)
+        out = (np.full(self.size, default, dtype=float) if np.ndim(default) == 0
+               else np.array(np.broadcast_to(default, (self.size,)), dtype=float))
         for name, value in values.items():
             block = self.blocks[name]
             array = np.asarray(value, float)
             if array.ndim <= 1 and array.size in (1, block.size):
                 out[block.start : block.stop] = array  # a vector already in CasADi's order, or a scalar
+            elif array.shape == block.shape:
+                out[block.start : block.stop] = array.ravel(order="F")
             else:
                 out[block.start : block.stop] = np.broadcast_to(array, block.shape).ravel(order="F")
         return out
@@ -88,7 +91,6 @@ class NLPSolution:
     status: str
     iterations: int
     solve_time: float
-    g_duals: Arrays = field(default_factory=dict)
 
 
 class ProblemBuilder:
@@ -221,7 +223,6 @@ class CompiledNLP:
             status=str(stats.get("return_status", "unknown")),
             iterations=int(stats.get("iter_count", -1)),
             solve_time=elapsed,
-            g_duals=self.g_layout.unpack(lam_g_vec),
         )
 
     def constraint_violation(self, x_vec: np.ndarray, params: dict[str, Any]) -> float:

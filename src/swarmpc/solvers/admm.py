@@ -181,7 +181,7 @@ class LocalSolverLadder:
         return self._built[slots]
 
     def solve(
-        self, params: dict[str, Any], guess: dict[str, np.ndarray], fixed: dict[str, Any] | None = None,
+        self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
         *, copies: int, duals: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> NLPSolution:
         """Solve the problem sized for ``copies`` neighbours (see :meth:`CompiledNLP.solve`);
@@ -457,8 +457,9 @@ class LocalAgent:
         if targets is not None and self._reusable(request, targets, same_shape) and self._last_sent is not None:
             self._last_sent = replace(self._last_sent, solve_time=0.0)
             return self._last_sent
+        point: dict[str, np.ndarray] | np.ndarray
         if self._last is not None and same_shape and not request.new_step:
-            point: dict[str, np.ndarray] = dict(self._last.x)
+            point = self._last.x_vec  # the same problem's last solution, already laid out
         else:
             warm = self._last is not None and request.new_step and same_shape
             point = self._initial_point(request, seed=not warm)  # warm: shifted L, A below

@@ -56,7 +56,7 @@ class CentralizedSolver:
             for name, value in shifted.items():
                 if name.startswith(("L", "A")):
                     point[name] = value
-            lam_g = self.nlp.g_layout.pack(shift_blocks(self._previous.g_duals))
+            lam_g = self.nlp.g_layout.pack(shift_blocks(self.nlp.g_layout.unpack(self._previous.lam_g)))
             lam_x = self.nlp.x_layout.pack(shift_blocks(self.nlp.x_layout.unpack(self._previous.lam_x)))
         solution = self.nlp.solve(params, point, lam_x, lam_g)
         d, M = self.settings.dim, self.num_agents
