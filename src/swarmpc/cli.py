@@ -16,6 +16,7 @@ from typing import Annotated, Any, NoReturn
 
 import typer
 
+from swarmpc._launch import caused_by_interrupt
 from swarmpc.config import Scenario, ScenarioError, load_scenario
 
 app = typer.Typer(
@@ -429,11 +430,16 @@ def main() -> None:
         code, reported = INTERRUPTED, True
     except Exception as err:  # the CLI library's usage errors carry format_message()
         format_message = getattr(err, "format_message", None)
-        if format_message is None:
+        if caused_by_interrupt(err):
+            # a Ctrl-C inside a library's lazy import (matplotlib's, before a run) comes out as that
+            # library's error, with the KeyboardInterrupt as its cause
+            code = INTERRUPTED
+        elif format_message is None:
             raise
-        line = format_message().splitlines()[0].replace("Value error, ", "")
-        typer.echo(f"swarmpc: error: {line}", err=True)
-        code = 2
+        else:
+            line = format_message().splitlines()[0].replace("Value error, ", "")
+            typer.echo(f"swarmpc: error: {line}", err=True)
+            code = 2
     if code == INTERRUPTED and not reported:
         typer.echo("swarmpc: interrupted", err=True)
     sys.exit(code if isinstance(code, int) else 0)
