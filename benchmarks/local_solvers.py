@@ -63,10 +63,11 @@ def record_problems(scenario: str, steps: int, agents: int | None = None) -> tup
     recorded: list[dict[str, Any]] = []
     original = admm.LocalSolverLadder.solve
 
-    def recording(self, params, guess, fixed=None, *, copies, duals=None):  # type: ignore[no-untyped-def]
-        recorded.append({"slots": self.slots_for(copies), "params": params, "guess": guess, "fixed": fixed,
-                         "duals": duals})
-        return original(self, params, guess, fixed, copies=copies, duals=duals)
+    def recording(self, params, guess, fixed=None, *, copies, planes=0, duals=None):  # type: ignore[no-untyped-def]
+        if not planes:  # the candidates are built without separating planes
+            recorded.append({"slots": self.slots_for(copies), "params": params, "guess": guess, "fixed": fixed,
+                             "duals": duals})
+        return original(self, params, guess, fixed, copies=copies, planes=planes, duals=duals)
 
     admm.LocalSolverLadder.solve = recording  # type: ignore[method-assign]
     try:

@@ -77,11 +77,13 @@ def test_aggregate_rates_and_cost_gap():
     assert row["copies_mean"] is None  # none recorded
     table = markdown_table(rows)
     assert "| random | 4 | 2 | 50% | 50% |" in table and "+10.0%" in table
-    with_copies = [CaseOutcome(**{**outcome("random", 8, seed, "admm", 1.0).__dict__, "copies_mean": held})
-                   for seed, held in ((0, 1.0), (1, 2.0))]
+    with_copies = [CaseOutcome(**{**outcome("random", 8, seed, "admm", 1.0).__dict__, "copies_mean": held,
+                                  "planes_mean": planes})
+                   for seed, held, planes in ((0, 1.0, 0.5), (1, 2.0, 1.0))]
     (row,) = aggregate(with_copies + [outcome("random", 8, 2, "admm", 1.0)])
     assert row["copies_mean"] == pytest.approx(1.5)  # runs that recorded none do not count
-    assert markdown_table([row]).rstrip().endswith("| 1.50 |")
+    assert row["planes_mean"] == pytest.approx(0.75)
+    assert markdown_table([row]).rstrip().endswith("| 1.50 | 0.75 |")
 
 
 @given(k_step=st.floats(0.0, 3.0), k_agent=st.floats(-1.0, 2.0), scale=st.floats(0.1, 100.0))
@@ -236,3 +238,10 @@ def test_bench_merge_command_reports_a_bad_source_in_one_line(tmp_path):
     (line,) = done.stderr.strip().splitlines()
     assert "--merge" in line and "broken.json" in line
     assert not (tmp_path / "m").exists()
+
+
+def test_a_plane_margin_reaches_the_admm_cases_only():
+    cases = plan_cases(["random"], [4], 1, "serial", None, 60.0, 4, plane_margin=0.05)
+    by_method = {c.method: c.scenario().solver.plane_margin for c in cases}
+    assert by_method == {"admm": 0.05, "centralized": None}
+    assert all(c.scenario().solver.plane_margin is None for c in plan_cases(["random"], [4], 1, "serial", None, 60.0, 0))

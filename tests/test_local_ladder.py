@@ -37,7 +37,7 @@ def test_spread_out_swarm_builds_only_the_smallest_problem():
     guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
     plan = solver.plan(states, goals, guess)
     ladder = solver.executor._agents[0].nlp  # agents of one executor share one ladder
-    assert set(ladder._built) == {0}
+    assert set(ladder._built) == {(0, 0)}
     assert plan.admm_iterations == 1 and not plan.fallback.any()
     solver.close()
 
@@ -78,7 +78,7 @@ def test_a_failed_warm_start_is_retried_cold(settings):
             solution = real.solve(params, guess, fixed=fixed)
             return replace(solution, success=False, status="Infeasible_Problem_Detected") if lam_g is not None else solution
 
-    ladder._built[1] = WarmFails()
+    ladder._built[(1, 0)] = WarmFails()
     scn = builtin_scenario("paper-2d")
     states, goals = scn.start_states(), scn.goal_states()
     d, K = settings.dim, settings.num_constrained

@@ -51,6 +51,8 @@ class BenchCase:
     workers: int | None = None
     budget_s: float = 600.0
     max_steps: int | None = None
+    plane_margin: float | None = None
+    """``solver.plane_margin`` of an ADMM case (None: the scenario's own)."""
 
     def scenario(self) -> Scenario:
         """The case's scenario (built-in generators; see the module docstring)."""
@@ -62,6 +64,8 @@ class BenchCase:
         updates: dict[str, Any] = {"solver.method": self.method}
         if self.max_steps is not None:
             updates["stop.max_steps"] = self.max_steps
+        if self.plane_margin is not None and self.method == "admm":
+            updates["solver.plane_margin"] = self.plane_margin
         return scn.with_updates(**updates)
 
     @property
@@ -94,6 +98,9 @@ class CaseOutcome:
     copies_mean: float | None = None
     """Neighbours' copies an agent held, averaged over agents and steps (ADMM; None: centralised
     or a report written before it was recorded)."""
+    planes_mean: float | None = None
+    """Separating planes an agent kept to, averaged over agents and steps (ADMM with
+    ``solver.plane_margin``; None: centralised or a report written before it was recorded)."""
 
 
 
@@ -140,6 +147,7 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         unreached=tuple(i for i, done in enumerate(summary["reached"]) if not done),
         worst_goal_distance=float(final_goal_distance(result.states, scn).max()),
         copies_mean=_mean([r.copies for r in records if r.copies is not None]),
+        planes_mean=_mean([r.planes for r in records if r.planes is not None]),
     )
 
 
@@ -151,6 +159,7 @@ def _mean(values: Sequence[Any]) -> float | None:
 def plan_cases(
     families: Iterable[str], sizes: Iterable[int], seeds: int, executor: str, workers: int | None,
     budget_s: float, central_max_agents: int, max_steps: int | None = None, first_seed: int = 0,
+    plane_margin: float | None = None,
 ) -> list[BenchCase]:
     """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed).
     The random and spread families run seeds ``first_seed`` … ``first_seed + seeds - 1``, so a long
@@ -159,7 +168,7 @@ def plan_cases(
     for family in families:
         for m in sizes:
             for seed in (range(first_seed, first_seed + seeds) if family in SEEDED_FAMILIES else range(1)):
-                cases.append(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps))
+                cases.append(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps, plane_margin))
                 if m <= central_max_agents:
                     cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps))
     return cases
@@ -198,6 +207,7 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
             "cost_gap_pct_median": _percentile(gaps, 50),
             "central_step_ms_median": _percentile([t for o in central.values() for t in o.step_ms], 50),
             "copies_mean": _mean([o.copies_mean for o in admm if o.copies_mean is not None]),
+            "planes_mean": _mean([o.planes_mean for o in admm if o.planes_mean is not None]),
         })
     return rows
 
@@ -248,7 +258,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The benchmark table (one line per family and swarm size)."""
     header = ("| family | M | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
               "| step ms median | p95 | per-agent ms median | p95 | ADMM it. mean | max | failures "
-              "| cost vs central | central step ms | copies per agent |")
+              "| cost vs central | central step ms | copies per agent | planes per agent |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         lines.append("| " + " | ".join([
@@ -260,7 +270,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
             _cell(r["agent_ms_median"]), _cell(r["agent_ms_p95"]), _cell(r["iterations_mean"]),
             _cell(r["iterations_max"]), str(r["solver_failures"]),
             _cell(r["cost_gap_pct_median"], "{:+.1f}%"), _cell(r["central_step_ms_median"]),
-            _cell(r.get("copies_mean"), "{:.2f}"),
+            _cell(r.get("copies_mean"), "{:.2f}"), _cell(r.get("planes_mean"), "{:.2f}"),
         ]) + " |")
     return "\n".join(lines) + "\n"
 
@@ -280,12 +290,14 @@ def run_bench(
     log: Callable[[str], None] = lambda _line: None,
     first_seed: int = 0,
     save_runs: bool = False,
+    plane_margin: float | None = None,
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
 
     Cases run ``jobs`` at a time in separate processes (each case itself uses ``executor``);
     per-step times are therefore measured with ``jobs`` runs sharing the machine. ``save_runs``
-    keeps every run's folder under ``out/runs``.
+    keeps every run's folder under ``out/runs``; ``plane_margin`` sets ``solver.plane_margin`` of
+    every ADMM case.
     """
     unknown = sorted(set(families) - set(FAMILIES))
     if unknown:
@@ -293,7 +305,8 @@ def run_bench(
     sizes = tuple(sizes or (QUICK_SIZES if quick else FULL_SIZES))
     seeds = seeds or (1 if quick else 5)
     cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
-                       min(central_max_agents, 4) if quick else central_max_agents, max_steps, first_seed)
+                       min(central_max_agents, 4) if quick else central_max_agents, max_steps, first_seed,
+                       plane_margin)
     jobs = jobs or (1 if executor != "serial" else available_cores())
     machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
     outcomes: list[CaseOutcome] = []

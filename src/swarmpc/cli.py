@@ -106,6 +106,8 @@ def run(
     rho: Annotated[float | None, typer.Option(help="ADMM penalty")] = None,
     admm_tol: Annotated[float | None, typer.Option(help="ADMM residual tolerance [m]")] = None,
     admm_max_iter: Annotated[int | None, typer.Option(help="ADMM iteration cap per step")] = None,
+    plane_margin: Annotated[float | None, typer.Option(
+        help="keep near, not engaged pairs apart by separating planes instead of copies [m]")] = None,
     initial_guess: Annotated[Guess | None, typer.Option(help="initial-guess strategy")] = None,
     max_steps: Annotated[int | None, typer.Option(help="MPC steps at most")] = None,
     executor: Annotated[
@@ -135,6 +137,7 @@ def run(
                 "solver.rho": rho,
                 "solver.tol": admm_tol,
                 "solver.max_iter": admm_max_iter,
+                "solver.plane_margin": plane_margin,
                 "solver.initial_guess": initial_guess.value if initial_guess else None,
                 "stop.max_steps": max_steps,
             }
@@ -380,6 +383,8 @@ def bench(
     budget: Annotated[float, typer.Option(min=1.0, help="wall-time budget per case [s]")] = 600.0,
     central_max_agents: Annotated[int, typer.Option(min=0, help="largest M also run centralised")] = 16,
     max_steps: Annotated[int | None, typer.Option(min=1, help="override every case's step cap")] = None,
+    plane_margin: Annotated[float | None, typer.Option(
+        min=0.0, help="solver.plane_margin of every ADMM case [m] [the scenarios' own: off]")] = None,
     save_runs: Annotated[bool, typer.Option("--save-runs", help="keep every run's folder under OUT/runs")] = False,
     merge: Annotated[list[Path] | None, typer.Option(
         help="run nothing: one report from these earlier bench.json files or folders (repeatable)")] = None,
@@ -408,6 +413,7 @@ def bench(
             sizes=size_list, seeds=seeds, jobs=jobs, executor=executor.value, workers=workers,
             budget_s=budget, central_max_agents=central_max_agents, max_steps=max_steps,
             log=lambda line: typer.echo(line, err=True), first_seed=first_seed, save_runs=save_runs,
+            plane_margin=plane_margin,
         )
     except ValueError as err:
         fail(f"--{str(err).splitlines()[0]}")

@@ -184,6 +184,12 @@ class SolverConfig(_Frozen):
         "(its agents are not solved again in the step while other groups iterate); false: only the "
         "residuals over all blocks decide",
     )
+    plane_margin: float | None = Field(
+        default=None, ge=0,
+        description="ADMM keeps a coupled pair apart by fixed separating planes instead of copies when its "
+        "guesses clear the delta box by d_min + this [m] on some axis at every constrained step "
+        "(no consensus for that pair); null: every coupled pair holds copies",
+    )
     reuse_tol: float = Field(
         default=1e-4, ge=0,
         description="within an MPC step, an ADMM agent whose consensus targets moved less than this [m] "

@@ -245,7 +245,7 @@ def build_centralized(s: OCPSettings, num_agents: int, options: dict | None = No
 
 def build_local(
     s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict | None = None,
-    plugin: str = "ipopt", warm_start: bool = False, pair_collision: str | None = None,
+    plugin: str = "ipopt", warm_start: bool = False, pair_collision: str | None = None, num_planes: int = 0,
 ) -> CompiledNLP:
     """Agent i's ADMM subproblem with ``num_copies`` local copies of other agents.
 
@@ -265,6 +265,11 @@ def build_local(
     its copies only (static obstacles keep ``s.collision``): the soft form with slack price
     ``s.kappa`` is the rescue problem of a hard-constrained agent, always feasible, whose optimum
     is the plan that violates the separation least (see ``LocalAgent``).
+
+    ``num_planes`` half-space slots keep the own positions on one side of fixed separating planes
+    (parameters ``Hn{p}`` (d, K), unit normals per step, and ``Hb{p}`` (1, K), offsets:
+    ``Hn' p_k >= Hb_k``): the cheap constraint of a pair that is near but not engaged, which the
+    coordinator splits between the two agents (:func:`swarmpc.solvers.admm.separating_planes`).
     """
     builder = ProblemBuilder()
     d, K, first = s.dim, s.num_constrained, s.first_constrained_step
@@ -288,7 +293,11 @@ def build_local(
         lam = builder.variable(f"L{c}", 2 * d, K, 0.0, np.inf)
         margin, norm_sq = certificate_terms(own - copy, lam, half)
         add_certificate(builder, str(c), margin, norm_sq, pair_settings)
-    label = f"local_{num_copies}_{int(dynamic_copies)}_{pair_settings.collision}"
+    for p in range(num_planes):
+        normals = builder.parameter(f"Hn{p}", d, K)
+        offsets = builder.parameter(f"Hb{p}", 1, K)
+        builder.constrain(f"plane{p}", ca.sum1(normals * own) - offsets, 0.0, np.inf)
+    label = f"local_{num_copies}_{num_planes}_{int(dynamic_copies)}_{pair_settings.collision}"
     if plugin != "ipopt":
         return builder.build(label, plugin, options or {})
     return builder.build(label, "ipopt", {**LOCAL_IPOPT_OPTIONS, **(options or {})},

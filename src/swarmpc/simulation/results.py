@@ -4,7 +4,8 @@ A run folder holds ``summary.json``, ``trajectory.npz`` and ``scenario.yaml`` (t
 design.md section 8; ``trajectory.npz`` adds ``disturbances`` when the run injected process noise),
 ``steps.npz`` (per-step solver records: ``failures`` = failed solve calls, ``fallback`` = which
 agents applied a safe fallback plan, ``repaired`` = ADMM repair pass) and, for ADMM, ``admm.npz``
-(residual histories, and ``copies``: how many neighbours each agent held per step). It is written
+(residual histories, ``copies``: how many neighbours each agent held per step, and ``planes``: how
+many separating planes it kept to). It is written
 under a temporary name beside the target and renamed into place when complete, so a reader never
 sees a half-written folder.
 """
@@ -43,6 +44,8 @@ class StepRecord:
     rho: tuple[float, ...]
     copies: np.ndarray | None = None
     """(M,) neighbours' copies each agent held (ADMM), None for a centralised solve."""
+    planes: np.ndarray | None = None
+    """(M,) separating planes each agent kept to (ADMM), None for a centralised solve."""
 
     @classmethod
     def from_plan(cls, plan: PlanStep) -> StepRecord:
@@ -58,6 +61,7 @@ class StepRecord:
             dual_residuals=tuple(plan.dual_residuals),
             rho=tuple(plan.rho_history),
             copies=None if plan.copies is None else np.asarray(plan.copies, int),
+            planes=None if plan.planes is None else np.asarray(plan.planes, int),
         )
 
 
@@ -217,5 +221,7 @@ def _write_contents(result: RunResult, folder: Path) -> None:
             rho=rho,
             iterations=np.array([r.admm_iterations or 0 for r in records], int),
             copies=np.array([r.copies if r.copies is not None else np.zeros(m, int) for r in records],
+                            int).reshape(len(records), m),
+            planes=np.array([r.planes if r.planes is not None else np.zeros(m, int) for r in records],
                             int).reshape(len(records), m),
         )

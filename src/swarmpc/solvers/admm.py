@@ -27,6 +27,7 @@ import numpy as np
 
 from swarmpc.formulation.nlp import CompiledNLP, NLPSolution, shift_blocks
 from swarmpc.formulation.ocp import OCPSettings, build_local
+from swarmpc.model.dynamics import discrete_matrices
 from swarmpc.model.geometry import box_exterior_distance, box_signed_distance
 from swarmpc.solvers.base import PlanStep, fallback_plan
 from swarmpc.solvers.executors import Executor, SerialExecutor
@@ -81,6 +82,13 @@ class ADMMConfig:
     multipliers stand) while other components iterate on, until the residuals over all blocks meet
     the tolerance (the paper's stop, which alone decides with False). Either way the conflict check
     runs on everyone's plans before any is applied (docs/admm.md)."""
+    plane_margin: float | None = None
+    """None: every coupled pair holds copies of each other (OBCA and consensus). A margin [m]: a
+    coupled pair whose guesses stay at least d_min + plane_margin beyond the delta box on one axis
+    at every constrained step is kept apart by a fixed separating plane per step instead, each
+    agent keeping to its side with half the spare room (:func:`separating_planes`): no copies, no
+    consensus, no iterations for that pair. A plane pair whose plans break the separation is
+    coupled with copies (docs/admm.md)."""
     engage_margin: float | None = None
     """None: the paper's stop (primal and dual residual over every block). A margin [m]: the
     engaged stop, primal residual over engaged pairs' blocks plus mutually clear own plans
@@ -115,6 +123,15 @@ class LocalRequest:
     rescue: bool = False
     """A repair's last attempt: if the hard solves fail and the fallback plan breaks the separation
     from the pinned plans, fly the least-violating plan instead (see ``LocalAgent._rescue``)."""
+    plane_normals: np.ndarray | None = None
+    """(P, d, K) unit normals of the separating planes the agent's positions keep to (None: none);
+    see :func:`separating_planes`."""
+    plane_offsets: np.ndarray | None = None
+    """(P, K) offsets of those planes: normal' p_k >= offset_k at each constrained step k."""
+
+    @property
+    def num_planes(self) -> int:
+        return 0 if self.plane_normals is None else len(self.plane_normals)
 
 
 @dataclass(frozen=True)
@@ -156,7 +173,7 @@ class LocalSolverLadder:
         self.options = options
         self.warm_start = warm_start
         self.pair_collision = pair_collision
-        self._built: dict[int, CompiledNLP] = {}
+        self._built: dict[tuple[int, int], CompiledNLP] = {}
         self._lock = threading.Lock()
 
     def __getstate__(self) -> dict[str, Any]:
@@ -173,22 +190,24 @@ class LocalSolverLadder:
             raise ValueError(f"{copies} neighbours exceed the {self.max_slots} copy slots")
         return copies
 
-    def solver(self, slots: int) -> CompiledNLP:
-        """The built problem with ``slots`` copy slots (built now if this is its first use)."""
-        if slots not in self._built:
-            self._built[slots] = build_local(self.settings, slots, self.dynamic_copies, self.options, self.plugin,
-                                             self.warm_start, self.pair_collision)
-        return self._built[slots]
+    def solver(self, slots: int, planes: int = 0) -> CompiledNLP:
+        """The built problem with ``slots`` copy slots and ``planes`` separating-plane slots (built
+        now if this is its first use)."""
+        key = (slots, planes)
+        if key not in self._built:
+            self._built[key] = build_local(self.settings, slots, self.dynamic_copies, self.options, self.plugin,
+                                           self.warm_start, self.pair_collision, num_planes=planes)
+        return self._built[key]
 
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
-        *, copies: int, duals: tuple[np.ndarray, np.ndarray] | None = None,
+        *, copies: int, planes: int = 0, duals: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> NLPSolution:
-        """Solve the problem sized for ``copies`` neighbours (see :meth:`CompiledNLP.solve`);
-        ``duals``: multipliers of the bounds and constraints (from a previous solve of the same
-        problem) that start this one when the ladder warm-starts."""
+        """Solve the problem sized for ``copies`` neighbours and ``planes`` separating planes (see
+        :meth:`CompiledNLP.solve`); ``duals``: multipliers of the bounds and constraints (from a
+        previous solve of the same problem) that start this one when the ladder warm-starts."""
         with self._lock:
-            nlp = self.solver(self.slots_for(copies))
+            nlp = self.solver(self.slots_for(copies), planes)
             if duals is None or not self.warm_start:
                 return nlp.solve(params, guess, fixed=fixed)
             warm = nlp.solve(params, guess, *duals, fixed=fixed)
@@ -256,6 +275,7 @@ class LocalAgent:
         self._gamma: dict[int, np.ndarray] = {}
         self._last: NLPSolution | None = None
         self._last_neighbours: tuple[int, ...] = ()
+        self._last_planes: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
         self._last_sent: LocalResult | None = None
         self._last_state: np.ndarray | None = None
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
@@ -333,10 +353,10 @@ class LocalAgent:
         assert self._plan is not None
         n = len(request.neighbours)
         candidate = self._initial_point(replace(request, guess=self._plan[0]), always_seed=True)
-        retry = self.nlp.solve(params, candidate, fixed=pinned, copies=n)
+        retry = self.nlp.solve(params, candidate, fixed=pinned, copies=n, planes=request.num_planes)
         if retry.success:
             return retry
-        nlp = self.nlp.solver(self.nlp.slots_for(n))
+        nlp = self.nlp.solver(self.nlp.slots_for(n), request.num_planes)
         x_vec = nlp.x_layout.pack({**candidate, **pinned})
         if nlp.constraint_violation(x_vec, params) > 1e-7:
             return failed
@@ -378,7 +398,8 @@ class LocalAgent:
         for slot, other in enumerate(request.neighbour_plans[0]):
             offsets = fallback[first:, : s.dim] - other[first:, : s.dim]
             point.update(pair_guess_blocks(str(slot), offsets, request.delta, soft))
-        solution = self.rescue.solve(params, point, fixed=pinned, copies=len(request.neighbours))
+        solution = self.rescue.solve(params, point, fixed=pinned, copies=len(request.neighbours),
+                                     planes=request.num_planes)
         if not solution.success:
             return None, solution.solve_time
         states, inputs = solution.x["X"].T, solution.x["U"].T
@@ -402,7 +423,16 @@ class LocalAgent:
             not request.neighbours and not request.new_step and request.neighbour_plans is None
             and self._last_neighbours == () and self._last_sent is not None and self._last_sent.success
             and self._last_state is not None and np.array_equal(request.state, self._last_state)
+            and self._same_planes(request)
         )
+
+    def _same_planes(self, request: LocalRequest) -> bool:
+        """True when ``request`` poses the separating planes of the last request."""
+        normals, offsets = self._last_planes
+        if request.plane_normals is None or normals is None:
+            return request.plane_normals is None and normals is None
+        return (np.array_equal(request.plane_normals, normals)
+                and np.array_equal(request.plane_offsets, offsets))
 
     def _consensus_targets(self, request: LocalRequest, params: dict[str, Any]) -> tuple[float, float, np.ndarray]:
         """(rho, owner weight, every block's target z - gamma / rho_b): the local problem depends
@@ -452,7 +482,14 @@ class LocalAgent:
                 params[f"x0c{slot}"] = request.neighbour_states[slot]
             params[f"Z{slot}"] = request.z_neighbours[slot]
             params[f"Y{slot}"] = zeros if repair else self._gamma.get(j, zeros)
-        same_shape = request.neighbours == self._last_neighbours
+        planes = request.num_planes
+        if planes:
+            assert request.plane_normals is not None and request.plane_offsets is not None
+            for p in range(planes):
+                params[f"Hn{p}"] = request.plane_normals[p]
+                params[f"Hb{p}"] = request.plane_offsets[p][None, :]
+        # the same problem as the last solve: same copies, same planes
+        same_shape = request.neighbours == self._last_neighbours and self._same_planes(request)
         targets = self._consensus_targets(request, params) if n else None
         if targets is not None and self._reusable(request, targets, same_shape) and self._last_sent is not None:
             self._last_sent = replace(self._last_sent, solve_time=0.0)
@@ -470,11 +507,11 @@ class LocalAgent:
         if pinned is not None and s.collision == "soft":
             # repair: first try to keep clear of the fixed plans without slack
             strict = {**pinned, **{f"A{slot}": 0.0 for slot in range(len(request.neighbours))}}
-            solution = self.nlp.solve(params, point, fixed=strict, copies=n)
+            solution = self.nlp.solve(params, point, fixed=strict, copies=n, planes=planes)
             if not solution.success:
-                solution = self.nlp.solve(params, point, fixed=pinned, copies=n)
+                solution = self.nlp.solve(params, point, fixed=pinned, copies=n, planes=planes)
         else:
-            solution = self.nlp.solve(params, point, fixed=pinned, copies=n,
+            solution = self.nlp.solve(params, point, fixed=pinned, copies=n, planes=planes,
                                       duals=self._warm_duals(request, same_shape) if pinned is None else None)
         if pinned is not None and not solution.success and self._plan is not None:
             solution = self._repair_from_own_plan(request, params, pinned, solution)
@@ -524,6 +561,7 @@ class LocalAgent:
         )
         self._last_sent = result
         self._last_neighbours = request.neighbours
+        self._last_planes = (request.plane_normals, request.plane_offsets)
         return result
 
 
@@ -626,6 +664,57 @@ def reach_candidates(states: np.ndarray, settings: OCPSettings, delta: np.ndarra
     return candidates
 
 
+PLANE_EXTRA = 1e-3
+"""Separation [m] a plane pair keeps beyond d_min, so that a plan meeting its plane to the solver's
+constraint tolerance (1e-4 here) still clears d_min."""
+
+
+def separating_planes(
+    first: np.ndarray, second: np.ndarray, delta: np.ndarray, clearance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-step separating planes between two agents' guessed positions, split between the two.
+
+    Parameters
+    ----------
+    first, second : ndarray, shape (d, K)
+        The two agents' guessed positions at the constrained steps.
+    delta : ndarray, shape (d,)
+        Half-size per axis of the box each agent keeps the others out of.
+    clearance : float
+        Distance to keep beyond the box (d_min, plus :data:`PLANE_EXTRA` in the solver).
+
+    Returns
+    -------
+    normals : ndarray, shape (d, K)
+        Per step, the unit axis vector n_k (pointing from ``second`` to ``first``) of the axis on
+        which the guesses clear the box farthest.
+    first_offsets, second_offsets : ndarray, shape (K,)
+        Per step, ``first`` keeps n_k' p_k >= first_offsets[k] and ``second`` keeps
+        -n_k' p_k >= second_offsets[k].
+
+    Notes
+    -----
+    The guesses leave a spare room s_k = |o_a| - delta_a - clearance on that axis a (o = first -
+    second); each agent may move s_k / 2 towards the other. Any two positions that keep to their
+    sides then have n_k'(p - q) >= delta_a + clearance: they are at least ``clearance`` apart on
+    axis a beyond the box, so the Euclidean distance of the offset to the box is at least
+    ``clearance`` (OBCA's condition) whatever either agent does within its side. With s_k < 0
+    the guesses themselves are too close and the sides overlap: only pairs with s_k >= 0 at every
+    step are given planes.
+    """
+    offset = np.asarray(first, float) - np.asarray(second, float)
+    half = np.asarray(delta, float).reshape(-1)
+    steps = np.arange(offset.shape[1])
+    axis = np.argmax(np.abs(offset) - half[:, None], axis=0)
+    sign = np.where(offset[axis, steps] >= 0.0, 1.0, -1.0)
+    normals = np.zeros_like(offset)
+    normals[axis, steps] = sign
+    spare = np.abs(offset[axis, steps]) - half[axis] - clearance
+    first_offsets = sign * np.asarray(first, float)[axis, steps] - 0.5 * spare
+    second_offsets = -sign * np.asarray(second, float)[axis, steps] - 0.5 * spare
+    return normals, first_offsets, second_offsets
+
+
 def couple(neighbours: list[tuple[int, ...]], pairs: list[tuple[int, int]]) -> list[tuple[int, ...]]:
     """``neighbours`` with every pair in ``pairs`` coupled (both ways)."""
     coupled = [set(n) for n in neighbours]
@@ -683,6 +772,8 @@ class ADMMSolver:
         self._z: np.ndarray | None = None
         self._rho = config.rho
         self._final_neighbours: list[tuple[int, ...]] | None = None
+        self._planes: list[dict[int, tuple[np.ndarray, np.ndarray]]] = [{} for _ in range(num_agents)]
+        """This step's separating planes: per agent, partner -> (normals (d, K), offsets (K,))."""
 
     def close(self) -> None:
         self.executor.close()
@@ -711,6 +802,95 @@ class ADMMSolver:
             coupled &= candidates
         np.fill_diagonal(coupled, False)
         return [tuple(np.flatnonzero(row).tolist()) for row in coupled]
+
+    def reachable_guesses(self, states: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Which guesses a plan can follow, and their positions at the constrained steps (M, K, d).
+
+        A guess is followable when it starts at the measured state and obeys the dynamics and the
+        acceleration limit up to its second-to-last state (a shifted previous plan does; a straight
+        line from rest does not). Its last state repeats the one before; the positions returned
+        coast there instead (zero input), so that a plan can be at every one of them. Planes are
+        placed only between followable guesses: a plane drawn from a guess the agent cannot follow
+        can cut its reachable positions off altogether."""
+        s = self.settings
+        d, first = s.dim, s.first_constrained_step
+        A, B = discrete_matrices(d, s.dt, s.discretization)  # type: ignore[arg-type]
+        head = guess[:, :-1]
+        inputs = np.diff(head[:, :, d:], axis=1) / s.dt  # (M, N-1, d)
+        predicted = head[:, :-1] @ A.T + inputs @ B.T
+        scale = 1.0 + np.abs(guess).max(axis=(1, 2))
+        ok = np.abs(predicted - head[:, 1:]).max(axis=(1, 2)) <= 1e-6 * scale
+        ok &= np.abs(guess[:, 0] - states).max(axis=1) <= 1e-6 * scale
+        if s.accel is not None:
+            ok &= (np.abs(inputs) <= np.asarray(s.accel, float) * (1 + 1e-6) + 1e-9).all(axis=(1, 2))
+        coasting = guess[:, :, :].copy()
+        coasting[:, -1] = guess[:, -2] @ A.T
+        return ok, coasting[:, first:, :d]
+
+    def plane_pairs(
+        self, states: np.ndarray, guess: np.ndarray, neighbours: list[tuple[int, ...]],
+    ) -> tuple[list[tuple[int, int]], np.ndarray]:
+        """Coupled pairs (i < j) that a separating plane keeps apart instead of copies, and the
+        positions (M, K, d) the planes are drawn from. A pair qualifies when both guesses can be
+        followed (:meth:`reachable_guesses`) and clear the delta box by d_min + ``plane_margin``
+        on some axis at every constrained step (see ``ADMMConfig.plane_margin``)."""
+        margin = self.config.plane_margin
+        if margin is None or not any(neighbours):
+            return [], np.empty((0,))
+        followable, positions = self.reachable_guesses(states, guess)
+        half = np.asarray(self.delta, float).reshape(-1)
+        pairs = []
+        for i, n in enumerate(neighbours):
+            if not followable[i]:
+                continue
+            for j in n:
+                if j > i and followable[j]:
+                    excess = (np.abs(positions[i] - positions[j]) - half).max(axis=1).min()
+                    if excess >= self.settings.d_min + margin:
+                        pairs.append((i, j))
+        return pairs, positions
+
+    def _set_planes(self, positions: np.ndarray, pairs: list[tuple[int, int]]) -> None:
+        """Split each plane pair's separating planes (:func:`separating_planes`) between the two;
+        ``positions`` (M, K, d) at the constrained steps."""
+        self._planes = [{} for _ in range(self.num_agents)]
+        clearance = self.settings.d_min + PLANE_EXTRA
+        for i, j in pairs:
+            normals, offsets_i, offsets_j = separating_planes(positions[i].T, positions[j].T, self.delta, clearance)
+            self._planes[i][j] = (normals, offsets_i)
+            self._planes[j][i] = (-normals, offsets_j)
+
+    def _couple(self, neighbours: list[tuple[int, ...]], pairs: list[tuple[int, int]]) -> list[tuple[int, ...]]:
+        """:func:`couple`, and any of ``pairs`` that had a separating plane loses it (the copies
+        and OBCA take over)."""
+        for i, j in pairs:
+            self._planes[i].pop(j, None)
+            self._planes[j].pop(i, None)
+        return couple(neighbours, pairs)
+
+    def _with_planes(self, neighbours: list[tuple[int, ...]]) -> list[tuple[int, ...]]:
+        """``neighbours`` plus every plane partner (pairs the plain conflict check must skip)."""
+        return couple(neighbours, [(i, j) for i, planes in enumerate(self._planes) for j in planes])
+
+    def broken_planes(self, results: list[LocalResult]) -> list[tuple[int, int]]:
+        """Plane pairs (i < j) whose own plans do not keep half the OBCA separation (a fallback
+        plan, or a solve that missed its plane): they are coupled with copies."""
+        pairs = np.array([(i, j) for i, planes in enumerate(self._planes) for j in planes if i < j],
+                         int).reshape(-1, 2)
+        if not len(pairs):
+            return []
+        own = np.array([r.own for r in results])
+        half = np.asarray(self.delta, float).reshape(-1, 1)
+        outside = box_exterior_distance(own[pairs[:, 0]] - own[pairs[:, 1]], half, axis=1).min(axis=1)
+        broken = outside < 0.5 * self.settings.d_min
+        return [(int(i), int(j)) for i, j in pairs[broken]]
+
+    def _missing(
+        self, results: list[LocalResult], neighbours: list[tuple[int, ...]], checked: np.ndarray,
+    ) -> list[tuple[int, int]]:
+        """Pairs to couple before any plan is applied: candidate pairs with neither copies nor a
+        plane whose plans conflict, and plane pairs whose plans break the separation."""
+        return self.conflicts(results, self._with_planes(neighbours), checked) + self.broken_planes(results)
 
     def conflicts(
         self, results: list[LocalResult], neighbours: list[tuple[int, ...]], candidates: np.ndarray | None = None
@@ -784,6 +964,11 @@ class ADMMSolver:
             z = np.concatenate([self._z[:, :, 1:], self._z[:, :, -1:]], axis=2)
         candidates = reach_candidates(states, s, self.delta)
         neighbours = self.neighbours(guess, candidates)
+        planed, plane_positions = self.plane_pairs(states, guess, neighbours)
+        self._set_planes(plane_positions, planed)
+        if planed:
+            dropped = set(planed)
+            neighbours = [tuple(j for j in n if (min(i, j), max(i, j)) not in dropped) for i, n in enumerate(neighbours)]
         rho = rho_previous = self._rho
         primal: list[float] = []
         dual: list[float] = []
@@ -834,13 +1019,13 @@ class ADMMSolver:
             rhos.append(rho)
             if converged:
                 checked = self._checked_pairs(candidates, states, results)
-                missing = self.conflicts(results, neighbours, checked)
+                missing = self._missing(results, neighbours, checked)
                 if not missing and (cfg.engage_margin is None or self.plans_feasible(results, checked)) and (
                     self.coupled_plans_clear(results, neighbours)
                 ):
                     break
                 converged = False
-                neighbours = couple(neighbours, missing)
+                neighbours = self._couple(neighbours, missing)
                 if by_component:  # the components the new pairs join iterate again
                     labels = components(neighbours)
                     iterating |= np.isin(labels, labels[[i for pair in missing for i in pair]])
@@ -866,15 +1051,15 @@ class ADMMSolver:
                 failures += failed
                 # the repair only re-plans against neighbours: couple any candidate pair whose
                 # repaired plans now conflict and repair again
-                missing = self.conflicts(results, neighbours, self._checked_pairs(candidates, states, results))
+                missing = self._missing(results, neighbours, self._checked_pairs(candidates, states, results))
                 if not missing or round_ == REPAIR_ROUNDS - 1:
                     break
-                neighbours = couple(neighbours, missing)
+                neighbours = self._couple(neighbours, missing)
         stranded = self._stranded_fallbacks(results) if cfg.repair else []
         if stranded:
             # fallbacks that break the separation from another plan: those agents re-plan against
             # every plan (rescued if their hard solves fail), then their neighbours against them
-            neighbours = couple(neighbours, stranded)
+            neighbours = self._couple(neighbours, stranded)
             previous = results
             results = self._repair(states, goals, guess, neighbours, z, rho, results,
                                    agents=sorted({i for i, _ in stranded}))
@@ -904,6 +1089,7 @@ class ADMMSolver:
             dual_residuals=dual,
             rho_history=rhos,
             copies=np.array([len(n) for n in neighbours], int),
+            planes=np.array([len(p) for p in self._planes], int),
         )
 
     @staticmethod
@@ -958,6 +1144,11 @@ class ADMMSolver:
         plans: tuple[np.ndarray, np.ndarray] | None = None, carry: tuple[bool, ...] = (), rescue: bool = False,
     ) -> LocalRequest:
         first = self.settings.first_constrained_step
+        partners = sorted(self._planes[i])
+        normals = offsets = None
+        if partners:
+            normals = np.array([self._planes[i][j][0] for j in partners])
+            offsets = np.array([self._planes[i][j][1] for j in partners])
         if plans is None:
             z_neighbours = z[list(neighbours)]
         else:
@@ -981,6 +1172,8 @@ class ADMMSolver:
             relaxation=self.config.relaxation,
             carry=carry,
             rescue=rescue,
+            plane_normals=normals,
+            plane_offsets=offsets,
         )
 
     def _repair(

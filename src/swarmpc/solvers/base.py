@@ -34,6 +34,9 @@ class PlanStep:
     copies: np.ndarray | None = None
     """(M,) how many neighbours' copies each agent held at the end of the step (ADMM; None for a
     centralised solve, where every pair is in one problem)."""
+    planes: np.ndarray | None = None
+    """(M,) how many separating planes each agent kept to at the end of the step (ADMM with
+    ``plane_margin``; None for a centralised solve)."""
 
 
 def input_bounds(settings: OCPSettings) -> np.ndarray:
