@@ -53,3 +53,21 @@ def dynamics_error(states: np.ndarray, inputs: np.ndarray, dt: float, method: st
         raise ValueError(f"unknown discretisation {method!r}")
     predicted = np.concatenate([position, v + dt * inputs], axis=2)
     return float(np.max(np.abs(predicted - states[1:])))
+
+
+class ScriptedExecutor:
+    """Stands in for the agents: ``respond(request)`` returns each LocalResult."""
+
+    def __init__(self, respond):
+        self.respond = respond
+        self.requests = []
+
+    def start(self, factory, agent_ids):
+        pass
+
+    def solve(self, requests):
+        self.requests.extend(requests)
+        return [self.respond(r) for r in requests]
+
+    def close(self):
+        pass

@@ -115,11 +115,12 @@ OPTIONS = {p.opts[0]: p for p in RUN.params
 FIELD_OF = {"--seed": ("seed",), "--agents": ("agents",), "--dim": ("dim",), "--delta": ("delta", "agents"),
             "--rho": ("solver.rho",), "--admm-tol": ("solver.tol",), "--admm-max-iter": ("solver.max_iter",),
             "--max-steps": ("stop.max_steps",), "--method": ("solver.method",), "--collision": ("collision",),
-            "--initial-guess": ("solver.initial_guess",)}
+            "--initial-guess": ("solver.initial_guess",), "--plane-margin": ("solver.plane_margin",)}
 # valid ranges, for the options whose range the oracle knows
 IN_RANGE = {"--seed": lambda v: v >= 0, "--agents": lambda v: v >= 1, "--dim": lambda v: v in (2, 3),
             "--admm-max-iter": lambda v: v >= 1, "--max-steps": lambda v: v >= 1,
-            "--delta": lambda v: v > 0, "--rho": lambda v: v > 0, "--admm-tol": lambda v: v > 0}
+            "--delta": lambda v: v > 0, "--rho": lambda v: v > 0, "--admm-tol": lambda v: v > 0,
+            "--plane-margin": lambda v: v >= 0}
 # added when not fuzzed, so that valid command lines finish in well under a second
 FAST = {"--max-steps": "1", "--agents": "2", "--admm-max-iter": "10"}
 

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from conftest import recount_collisions
+from conftest import ScriptedExecutor, recount_collisions
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.dynamics import DoubleIntegrator
 from swarmpc.scenarios import builtin_scenario
@@ -151,24 +151,6 @@ def test_speed_cap_and_accel_bound_combine_by_minimum():
     assert np.allclose(reach_radius(states, s), np.minimum(accel_bound, speed_bound).max(axis=1))
     assert np.allclose(reach_radius(states, replace(s, speed=None)), accel_bound.max(axis=1))
     assert np.allclose(reach_radius(states, replace(s, accel=None)), speed_bound.max(axis=1))
-
-
-class ScriptedExecutor:
-    """Stands in for the agents: ``respond(request)`` returns each LocalResult."""
-
-    def __init__(self, respond):
-        self.respond = respond
-        self.requests = []
-
-    def start(self, factory, agent_ids):
-        pass
-
-    def solve(self, requests):
-        self.requests.extend(requests)
-        return [self.respond(r) for r in requests]
-
-    def close(self):
-        pass
 
 
 def resting_result(request, s: OCPSettings, offset=(0.0, 0.0), copy_error: float = 0.0) -> LocalResult:

@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import recount_collisions
+from conftest import ScriptedExecutor, recount_collisions
 from swarmpc.formulation.ocp import OCPSettings, build_local
 from swarmpc.model.dynamics import DoubleIntegrator
 from swarmpc.model.geometry import box_exterior_distance
@@ -99,23 +99,6 @@ def test_planes_are_drawn_only_from_guesses_a_plan_can_follow():
     solver.close()
 
 
-class ScriptedExecutor:
-    """Stands in for the agents: ``respond(request)`` returns each LocalResult."""
-
-    def __init__(self, respond):
-        self.respond, self.requests = respond, []
-
-    def start(self, factory, agent_ids):
-        pass
-
-    def solve(self, requests):
-        self.requests.extend(requests)
-        return [self.respond(r) for r in requests]
-
-    def close(self):
-        pass
-
-
 def _resting(request, s: OCPSettings, shift: float = 0.0) -> LocalResult:
     d = s.dim
     states = np.tile(np.concatenate([request.state[:d] + np.array([shift, 0.0]), np.zeros(d)]), (s.horizon + 1, 1))
@@ -142,7 +125,8 @@ def test_a_pair_at_rest_gets_a_plane_and_is_coupled_once_its_plans_break_it():
 
     executor = ScriptedExecutor(respond)
     solver = ADMMSolver(s, 2, np.full(2, 0.3), ADMMConfig(plane_margin=0.05, stall_window=None), executor)
-    step = solver.plan(states, np.zeros_like(states), guess)
+    goals = states + np.array([0.0, 5.0, 0.0, 0.0])  # far from both: planes allowed
+    step = solver.plan(states, goals, guess)
     first = executor.requests[:2]
     assert [r.neighbours for r in first] == [(), ()]
     assert [r.num_planes for r in first] == [1, 1]
@@ -164,3 +148,18 @@ def test_closed_loop_with_planes_is_collision_free_and_uses_them():
     collisions, worst = recount_collisions(result.states, scn.delta_vector)
     assert collisions == 0 and worst >= 1.0
     assert result.summary["solver_failures"] == 0
+
+
+def test_an_agent_near_its_goal_keeps_copies_not_planes():
+    """The same pair with agent 1 parked at its goal: it must be able to move aside, so the pair
+    keeps copies."""
+    s = _settings(2)
+    states = np.array([[0.0, 0.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0]])
+    guess = np.repeat(states[:, None], s.horizon + 1, axis=1)
+    executor = ScriptedExecutor(lambda request: _resting(request, s))
+    solver = ADMMSolver(s, 2, np.full(2, 0.3), ADMMConfig(plane_margin=0.05, stall_window=None), executor)
+    goals = np.array([[0.0, 5.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0]])
+    step = solver.plan(states, goals, guess)
+    assert [r.neighbours for r in executor.requests[:2]] == [(1,), (0,)]
+    assert step.planes.tolist() == [0, 0]
+    solver.close()

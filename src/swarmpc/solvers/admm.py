@@ -669,6 +669,12 @@ PLANE_EXTRA = 1e-3
 constraint tolerance (1e-4 here) still clears d_min."""
 
 
+PLANE_GOAL_RADIUS = 0.5
+"""[m] An agent this close to its goal gets no separating planes (its near pairs keep copies): a
+plane lets a parked agent yield only half the spare room, and agents threading between parked
+ones took 6-10 s longer, or did not arrive, with planes to them (docs/admm.md)."""
+
+
 def separating_planes(
     first: np.ndarray, second: np.ndarray, delta: np.ndarray, clearance: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -829,15 +835,21 @@ class ADMMSolver:
 
     def plane_pairs(
         self, states: np.ndarray, guess: np.ndarray, neighbours: list[tuple[int, ...]],
+        goals: np.ndarray | None = None,
     ) -> tuple[list[tuple[int, int]], np.ndarray]:
         """Coupled pairs (i < j) that a separating plane keeps apart instead of copies, and the
         positions (M, K, d) the planes are drawn from. A pair qualifies when both guesses can be
         followed (:meth:`reachable_guesses`) and clear the delta box by d_min + ``plane_margin``
-        on some axis at every constrained step (see ``ADMMConfig.plane_margin``)."""
+        on some axis at every constrained step (see ``ADMMConfig.plane_margin``), and, with
+        ``goals``, neither agent is within ``PLANE_GOAL_RADIUS`` of its goal: an agent parked at
+        its goal keeps copies of those near it, so that it can move aside for them."""
         margin = self.config.plane_margin
         if margin is None or not any(neighbours):
             return [], np.empty((0,))
         followable, positions = self.reachable_guesses(states, guess)
+        if goals is not None:
+            d = self.settings.dim
+            followable &= np.linalg.norm(states[:, :d] - goals[:, :d], axis=1) > PLANE_GOAL_RADIUS
         half = np.asarray(self.delta, float).reshape(-1)
         pairs = []
         for i, n in enumerate(neighbours):
@@ -964,7 +976,7 @@ class ADMMSolver:
             z = np.concatenate([self._z[:, :, 1:], self._z[:, :, -1:]], axis=2)
         candidates = reach_candidates(states, s, self.delta)
         neighbours = self.neighbours(guess, candidates)
-        planed, plane_positions = self.plane_pairs(states, guess, neighbours)
+        planed, plane_positions = self.plane_pairs(states, guess, neighbours, goals)
         self._set_planes(plane_positions, planed)
         if planed:
             dropped = set(planed)
