@@ -829,7 +829,7 @@ class ADMMSolver:
         ok &= np.abs(guess[:, 0] - states).max(axis=1) <= 1e-6 * scale
         if s.accel is not None:
             ok &= (np.abs(inputs) <= np.asarray(s.accel, float) * (1 + 1e-6) + 1e-9).all(axis=(1, 2))
-        coasting = guess[:, :, :].copy()
+        coasting = guess.copy()
         coasting[:, -1] = guess[:, -2] @ A.T
         return ok, coasting[:, first:, :d]
 
@@ -889,12 +889,7 @@ class ADMMSolver:
         plan, or a solve that missed its plane): they are coupled with copies."""
         pairs = np.array([(i, j) for i, planes in enumerate(self._planes) for j in planes if i < j],
                          int).reshape(-1, 2)
-        if not len(pairs):
-            return []
-        own = np.array([r.own for r in results])
-        half = np.asarray(self.delta, float).reshape(-1, 1)
-        outside = box_exterior_distance(own[pairs[:, 0]] - own[pairs[:, 1]], half, axis=1).min(axis=1)
-        broken = outside < 0.5 * self.settings.d_min
+        broken = ~self._pairs_apart(results, pairs[:, 0], pairs[:, 1])
         return [(int(i), int(j)) for i, j in pairs[broken]]
 
     def _missing(
@@ -944,12 +939,17 @@ class ADMMSolver:
         offset to the delta box of at least d_min / 2 at every constrained step. An RMS consensus
         within tol still lets single steps of two own plans differ from the copies by more: half
         of d_min is kept as the margin, contact is at 0."""
+        return bool(np.all(self._pairs_apart(results, first, second)))
+
+    def _pairs_apart(self, results: list[LocalResult], first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        """Per pair k: whether agents ``first[k]`` and ``second[k]`` keep their own plans apart as
+        :meth:`_own_plans_apart` asks."""
         if first.size == 0:
-            return True
+            return np.ones(0, bool)
         own = np.array([r.own for r in results])  # (M, d, K)
         half = np.asarray(self.delta, float).reshape(-1, 1)
         outside = box_exterior_distance(own[first] - own[second], half, axis=1)
-        return bool(np.all(outside >= 0.5 * self.settings.d_min))
+        return np.all(outside >= 0.5 * self.settings.d_min, axis=1)
 
     def _checked_pairs(self, candidates: np.ndarray, states: np.ndarray, results: list[LocalResult]) -> np.ndarray:
         """``candidates`` plus every pair of an agent whose plan moved farther than its reach bound
