@@ -20,6 +20,7 @@ from swarmpc.bench import (
     plan_cases,
     run_bench,
     run_case,
+    step_growth_interval,
     write_report,
 )
 
@@ -105,6 +106,36 @@ def test_report_states_the_growth(tmp_path):
     markdown, data = write_report(tmp_path, runs, "test", 1.0)
     assert "random (M = 4…16, medians): per-step wall time ~ M^2.00, per-agent compute ~ M^1.00" in markdown.read_text()
     assert json.loads(data.read_text())["growth"]["random"]["step"] == pytest.approx(2.0)
+
+
+def timed(family: str, agents: int, seed: int, step_ms: list[float]) -> CaseOutcome:
+    return CaseOutcome(**{**outcome(family, agents, seed, "admm", 1.0).__dict__, "step_ms": step_ms})
+
+
+@given(k=st.floats(0.0, 2.5), spread=st.floats(0.0, 0.5), runs=st.integers(2, 4))
+@settings(max_examples=20, deadline=None)
+def test_growth_interval_brackets_the_fit_and_widens_with_disagreeing_runs(k, spread, runs):
+    sizes = (4, 8, 16, 32)
+    outcomes = [timed("spread", m, s, [m**k * (1.0 + spread * s)] * 3) for m in sizes for s in range(runs)]
+    low, high = step_growth_interval(outcomes, "spread", repeats=200)
+    fitted = growth_exponents(aggregate(outcomes))["spread"]["step"]
+    assert low - 1e-9 <= fitted <= high + 1e-9
+    if spread == 0.0:  # identical runs: every resample is the same fit
+        assert high - low == pytest.approx(0.0, abs=1e-9) and fitted == pytest.approx(k, abs=1e-9)
+
+
+def test_growth_interval_needs_two_runs_per_size_and_reaches_the_report(tmp_path):
+    one_each = [timed("random", m, 0, [float(m)]) for m in (4, 8)]
+    assert step_growth_interval(one_each, "random") is None
+    assert step_growth_interval(one_each + [timed("random", 4, 1, [4.0])], "random") is None  # M = 8: one run
+    # runs that disagree by 2x at M = 8: the exponent is 0.5, 1.0 or 1.5 depending on the draw
+    runs = [timed("random", 4, s, [4.0]) for s in (0, 1)] + [timed("random", 8, 0, [8.0 / 2**0.5]),
+                                                               timed("random", 8, 1, [8.0 * 2**0.5])]
+    low, high = step_growth_interval(runs, "random")
+    assert low == pytest.approx(0.5) and high == pytest.approx(1.5)
+    markdown, data = write_report(tmp_path, runs, "test", 1.0)
+    assert "(90 % interval over resampled runs 0.50–1.50)" in markdown.read_text()
+    assert json.loads(data.read_text())["growth"]["random"]["step_interval"] == pytest.approx([0.5, 1.5])
 
 
 def test_real_case_recomputes_safety_from_the_trajectory():

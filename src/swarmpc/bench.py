@@ -234,12 +234,46 @@ def growth_exponents(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]
     return out
 
 
+def step_growth_interval(
+    outcomes: Sequence[CaseOutcome], family: str, level: float = 0.9, repeats: int = 1000, seed: int = 0,
+) -> tuple[float, float] | None:
+    """How far the per-step exponent could move with other seeds: a percentile bootstrap over runs.
+
+    Each repeat draws, at every size, as many ADMM runs as there are, with replacement, pools
+    their step times and fits the exponent of the medians as :func:`growth_exponents` does. The
+    ``level`` interval of those fits is returned, or None when a size has fewer than two runs or
+    there are fewer than two sizes (nothing to resample, or nothing to fit).
+    """
+    by_size: dict[int, list[np.ndarray]] = {}
+    for o in outcomes:
+        if o.case.family == family and o.case.method == "admm" and o.step_ms:
+            by_size.setdefault(o.case.agents, []).append(np.asarray(o.step_ms, dtype=float))
+    if len(by_size) < 2 or min(len(runs) for runs in by_size.values()) < 2:
+        return None
+    rng = np.random.default_rng(seed)
+    sizes = sorted(by_size)
+    log_m = np.log(sizes)
+    slopes = np.empty(repeats)
+    for r in range(repeats):
+        medians = []
+        for m in sizes:
+            runs = by_size[m]
+            drawn = rng.integers(len(runs), size=len(runs))
+            medians.append(np.median(np.concatenate([runs[i] for i in drawn])))
+        slopes[r] = np.polyfit(log_m, np.log(medians), 1)[0]
+    tail = 50.0 * (1.0 - level)
+    low, high = np.percentile(slopes, [tail, 100.0 - tail])
+    return float(low), float(high)
+
+
 def growth_lines(growth: dict[str, dict[str, Any]]) -> str:
     """One sentence per family for the markdown report."""
     lines = []
     for family, g in growth.items():
         sizes = g["sizes"]
-        parts = [f"per-step wall time ~ M^{g['step']:.2f}" if "step" in g else None,
+        interval = (f" (90 % interval over resampled runs {g['step_interval'][0]:.2f}–{g['step_interval'][1]:.2f})"
+                    if g.get("step_interval") else "")
+        parts = [f"per-step wall time ~ M^{g['step']:.2f}{interval}" if "step" in g else None,
                  f"per-agent compute ~ M^{g['agent']:.2f}" if "agent" in g else None]
         lines.append(f"* {family} (M = {sizes[0]}…{sizes[-1]}, medians): "
                      + ", ".join(p for p in parts if p))
@@ -346,6 +380,10 @@ def write_report(
     progress = f"{len(outcomes)} runs" if len(outcomes) == planned else f"{len(outcomes)} of {planned} runs"
     markdown, json_path = out / "bench.md", out / "bench.json"
     growth = growth_exponents(rows)
+    for family, g in growth.items():
+        interval = step_growth_interval(outcomes, family)
+        if interval is not None and "step" in g:
+            g["step_interval"] = list(interval)
     fits = f"\nGrowth with the swarm size (least-squares fit on log-log):\n\n{growth_lines(growth)}" if growth else ""
     _write_atomically(markdown, f"# swarmpc bench\n\n{progress} in {elapsed_s:.0f} s ({machine}).\n\n"
                       + markdown_table(rows) + fits)
