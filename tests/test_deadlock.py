@@ -200,6 +200,34 @@ def test_an_agent_near_a_free_goal_is_never_detoured_but_one_near_an_occupied_go
     assert (crowded.policy.patience - 1, 0) in crowded.events
 
 
+def test_a_head_on_pair_at_rest_short_of_free_goals_is_detoured_once_patience_runs_out():
+    # spread 3D, M = 128, seed 0: two agents 0.85 m short of their goals, each in the other's
+    # corridor, both goals free, at rest for good (spared by the free-goal rule)
+    states = np.array([[-3.59, 0.73, 1.17, 0, 0, 0], [-3.49, 0.37, 1.37, 0, 0, 0]])
+    goals = np.array([[-3.59, -0.13, 1.18, 0, 0, 0], [-3.48, 1.22, 1.37, 0, 0, 0]])
+    resolver = DeadlockResolver(2, 3, clearance=0.35)
+    assert resolver.blocked(states[:, :3], goals[:, :3]).all()
+    assert resolver.goal_free(states[:, :3], goals[:, :3]).all()
+    patience = resolver.policy.free_goal_patience
+    for step in range(patience + resolver.policy.patience + 1):
+        detoured = resolver.goals(step, states, goals)
+        if step < patience:
+            assert np.array_equal(detoured, goals), step  # spared while it may still get going
+    assert {agent for _, agent in resolver.events} == {0, 1}
+    # steps 0 … patience - 1 are spared, the next is the first of ``policy.patience`` stalled steps
+    assert min(step for step, _ in resolver.events) == patience + resolver.policy.patience - 1
+    assert not np.allclose(detoured[:, :3], goals[:, :3])
+    # without the patience the exemption holds for ever; a pair that moves again resets it
+    forever = DeadlockResolver(2, 3, clearance=0.35, policy=DeadlockPolicy(free_goal_patience=None))
+    restarted = DeadlockResolver(2, 3, clearance=0.35)
+    moving = states.copy()
+    moving[:, 3] = 0.1
+    for step in range(3 * patience):
+        forever.goals(step, states, goals)
+        restarted.goals(step, moving if step % patience == patience - 1 else states, goals)
+    assert forever.events == [] and restarted.events == []
+
+
 def _knotted_pair() -> tuple[np.ndarray, np.ndarray]:
     """Two agents in 3D, each sitting 0.25 m from the other's goal, side by side near the floor."""
     states = np.array([[0.0, 0.0, 0.4, 0.01, 0, 0], [0.0, 0.36, 0.4, -0.01, 0, 0]])
