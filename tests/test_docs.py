@@ -83,10 +83,10 @@ def _recipes() -> list[str]:
 
 
 def test_recipes_exist():
-    assert len(_recipes()) == 5
+    assert len(_recipes()) == 6
 
 
-@pytest.mark.parametrize("index", range(5), ids=lambda i: f"recipe-{i + 1}")
+@pytest.mark.parametrize("index", range(6), ids=lambda i: f"recipe-{i + 1}")
 def test_recipe_runs(index, tmp_path):
     code = _recipes()[index]
     env = {**os.environ, "MPLBACKEND": "Agg"}
