@@ -86,8 +86,8 @@ class DeadlockPolicy:
     """Steps an agent at rest short of a free goal, with another agent in its corridor, is spared;
     then it counts as stalled like any other (None: spared for ever). A head-on pair short of
     their free goals, each in the other's way, otherwise waits for ever (spread 3D, M = 128,
-    seed 0: two agents 0.85 m short, at rest for 1200 steps); agents that get going again on
-    their own were spared at most 42 steps in a row in the saved M = 32-128 runs."""
+    seed 0: two agents 0.85 m short, at rest for 1200 steps); agents that got going again on
+    their own were spared at most 69 steps in a row in the saved runs (random 3D, M = 64)."""
     untie_knots: bool = True
     """In 3D, resolve a cycle of agents not at their goals, each sitting on the next one's goal, by
     lifting one of them out of the layer (the others wait) instead of turning them all right."""
