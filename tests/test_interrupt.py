@@ -12,12 +12,19 @@ import numpy as np
 import pytest
 
 
+def _like_a_terminal() -> None:
+    """Ctrl-C's default disposition in the child, as a shell in the foreground gives it: a suite
+    started in the background (``cmd &`` in a script) hands its children SIGINT ignored, and
+    Python then keeps ignoring it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_sigint_gives_a_complete_interrupted_folder(tmp_path):
     out = tmp_path / "run"
     process = subprocess.Popen(
         [sys.executable, "-m", "swarmpc", "run", "paper-2d",
          "--max-steps", "100000", "--out", str(out), "--quiet"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_like_a_terminal,
     )
     time.sleep(6.0)  # imports, solver build and some steps
     assert process.poll() is None, process.communicate()
@@ -49,7 +56,7 @@ def test_sigint_while_starting_up_is_one_line_not_a_traceback(tmp_path, delay):
     out = tmp_path / "run"
     process = subprocess.Popen(
         [sys.executable, "-c", ENTRY_POINT, "run", "paper-2d", "--out", str(out), "--quiet"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_like_a_terminal,
     )
     assert process.stdout is not None and process.stdout.readline() == "loaded\n"
     time.sleep(delay)
