@@ -122,7 +122,7 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         timer.cancel()
     wall = time.perf_counter() - started
     if runs_dir is not None:
-        write_run(result, runs_dir / case.label)
+        write_run(result, runs_dir / case.label, overwrite=True)
     d = scn.dim
     positions = result.states[:, :, :d]
     delta = scn.delta_vector

@@ -18,6 +18,7 @@ import typer
 
 from swarmpc._launch import caused_by_interrupt
 from swarmpc.config import Scenario, ScenarioError, load_scenario
+from swarmpc.simulation.outdir import OutputError, RunFolderTarget
 
 app = typer.Typer(
     add_completion=False,
@@ -121,8 +122,13 @@ def run(
         str | None, typer.Option(help="Ray cluster to join (auto, ray://host:port) [start a local Ray]")
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar, no paragraph")] = False,
+    overwrite: Annotated[bool, typer.Option(
+        "--overwrite", help="replace an earlier run folder at the output path (never anything else)")] = False,
 ) -> None:
-    """Run a scenario in closed loop and write summary.json, trajectory.npz and a figure."""
+    """Run a scenario in closed loop and write summary.json, trajectory.npz and a figure.
+
+    The output path is checked before the run: an existing path there is refused unless it is a
+    swarmpc run folder and --overwrite is given."""
     check_generator_params(seed, agents, dim)
     check_executor_options(executor, workers, address)
     try:
@@ -144,8 +150,23 @@ def run(
         )
     except ScenarioError as err:
         fail(str(err))
-    target = out or Path("results") / scn.name
-    _run_and_write(scn, target, quiet, build_executor(scn, executor, workers, address))
+    target = reserve_output(out or Path("results") / scn.name, overwrite, scn)
+    try:
+        runner = build_executor(scn, executor, workers, address)
+    except BaseException:
+        target.discard()
+        raise
+    _run_and_write(scn, target, quiet, runner)
+
+
+def reserve_output(path: Path, overwrite: bool, scn: Scenario) -> RunFolderTarget:
+    """Check and reserve the run folder's location before any work (one line on a refusal)."""
+    from swarmpc.simulation.results import expected_run_bytes
+
+    try:
+        return RunFolderTarget(path, overwrite, expected_run_bytes(scn))
+    except OutputError as err:
+        fail(str(err))
 
 
 def check_executor_options(executor: ExecutorName, workers: int | None, address: str | None) -> None:
@@ -200,11 +221,12 @@ class _WorkersIgnoreCtrlC:
         if self.name != "process":
             self.inner.start(factory, agent_ids)
             return
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
         try:
             self.inner.start(factory, agent_ids)
         finally:
-            signal.signal(signal.SIGINT, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
     def solve(self, requests: Any) -> list[Any]:
         return self.inner.solve(requests)
@@ -214,27 +236,49 @@ class _WorkersIgnoreCtrlC:
 
 
 def _run_and_write(
-    scn: Scenario, target: Path, quiet: bool, executor: _WorkersIgnoreCtrlC | None = None
+    scn: Scenario, target: RunFolderTarget, quiet: bool, executor: _WorkersIgnoreCtrlC | None = None
 ) -> None:
+    """Simulate and write the run folder. SIGINT and SIGTERM end the loop after the current step
+    and the interrupted run is written whole; while the folder is written they are held off, so a
+    signal never leaves half a folder."""
+    from swarmpc.simulation.loop import StopFlag
+
+    stop = StopFlag()
+
+    def on_signal(_signum: int, _frame: FrameType | None) -> None:
+        stop.requested = True
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        result = _simulate_with_progress(scn, quiet, stop, executor)
+        folder = _write_with_figure(result, target)
+    except BaseException:
+        target.discard()
+        raise
+    finally:
+        if executor is not None:  # simulate closes it only when its loop ends normally (idempotent)
+            executor.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if not quiet:
+        typer.echo(result_paragraph(result.summary, folder))
+
+
+def _simulate_with_progress(
+    scn: Scenario, quiet: bool, stop: Any, executor: _WorkersIgnoreCtrlC | None
+) -> Any:
+    """The closed loop, with a progress bar on a terminal; executor failures become one line."""
     from dataclasses import replace
 
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from swarmpc.plots import plot_trajectories, load_run
-    from swarmpc.simulation.loop import StopFlag, simulate
-    from swarmpc.simulation.results import RunResult, write_run
+    from swarmpc.simulation.loop import simulate
+    from swarmpc.solvers.executors import ExecutorError
 
-    stop = StopFlag()
-
-    def on_sigint(_signum: int, _frame: FrameType | None) -> None:
-        stop.requested = True
-
-    previous_handler = signal.signal(signal.SIGINT, on_sigint)
     console = Console(stderr=True)
-    show = not quiet and console.is_terminal
     try:
-        if show:
+        if not quiet and console.is_terminal:
             with Progress(
                 TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("step {task.completed}"),
                 TimeElapsedColumn(), console=console, transient=True,
@@ -244,20 +288,25 @@ def _run_and_write(
                                   stop_flag=stop, executor=executor)
         else:
             result = simulate(scn, stop_flag=stop, executor=executor)
-    finally:
-        if executor is not None:  # simulate closes it only when its loop ends normally (idempotent)
-            executor.close()
-        signal.signal(signal.SIGINT, previous_handler)
+    except ExecutorError as err:
+        fail(str(err).splitlines()[0])
     if scn.solver.method == "admm":
         name = executor.name if executor else "serial"
         result = replace(result, summary={**result.summary, "executor": name})
+    return result
+
+
+def _write_with_figure(result: Any, target: RunFolderTarget) -> Path:
+    from swarmpc.plots import load_run, plot_trajectories
+    from swarmpc.simulation.results import RunResult, write_run
 
     def figure(run: RunResult, folder: Path) -> None:
         plot_trajectories(load_run(folder), folder / "trajectory.png")
 
-    folder = write_run(result, target, extra_writers=[figure])
-    if not quiet:
-        typer.echo(result_paragraph(result.summary, folder))
+    try:
+        return write_run(result, target, extra_writers=[figure])
+    except OutputError as err:
+        fail(str(err))
 
 
 def result_paragraph(summary: dict[str, Any], folder: Path) -> str:
@@ -420,10 +469,16 @@ def bench(
     typer.echo(str(markdown))
 
 
+def _terminate_as_interrupt(_signum: int, _frame: FrameType | None) -> None:
+    """SIGTERM is handled like Ctrl-C: what was started is cleaned up, one line, status 130."""
+    raise KeyboardInterrupt
+
+
 def main() -> None:
     """Console entry point: usage errors also exit with status 2 and one line; Ctrl-C (outside a
     run's simulation loop) exits with status 130 and one line ``swarmpc: interrupted``."""
     reported = False
+    signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     try:
         # typer turns a KeyboardInterrupt inside a command into a silent exit status 130
         code = app(standalone_mode=False)

@@ -185,7 +185,7 @@ def run_one(spec: RunSpec, folder: str) -> RunOutcome:
     started, cpu = time.perf_counter(), time.process_time()
     error = None
     try:
-        write_run(simulate(spec.build()), folder)
+        write_run(simulate(spec.build()), folder, overwrite=True)
     except Exception as err:  # one failed run must not lose the others
         message = str(err).splitlines()[0] if str(err) else ""
         error = f"{type(err).__name__}: {message}"

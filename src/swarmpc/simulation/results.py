@@ -7,14 +7,14 @@ agents applied a safe fallback plan, ``repaired`` = ADMM repair pass) and, for A
 (residual histories, ``copies``: how many neighbours each agent held per step, and ``planes``: how
 many separating planes it kept to). It is written
 under a temporary name beside the target and renamed into place when complete, so a reader never
-sees a half-written folder.
+sees a half-written folder; a complete folder carries a marker file, and only such folders are
+ever replaced (:mod:`swarmpc.simulation.outdir`).
 """
 
 from __future__ import annotations
 
 import json
-import os
-import shutil
+import math
 import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -25,6 +25,7 @@ import numpy as np
 
 from swarmpc.config import Scenario, scenario_to_yaml
 from swarmpc.simulation.metrics import summarize
+from swarmpc.simulation.outdir import OutputError, RunFolderTarget, write_marker
 from swarmpc.solvers.base import PlanStep
 
 
@@ -162,32 +163,74 @@ def _agent_time_stats(records: Sequence[StepRecord]) -> dict[str, float | None]:
 Writer = Callable[[RunResult, Path], None]
 
 
-def write_run(result: RunResult, out_dir: str | Path, extra_writers: Sequence[Writer] = ()) -> Path:
-    """Write the run folder atomically; ``extra_writers`` add files (figures) before the move."""
-    target = Path(out_dir).resolve()
-    target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=target.parent))
+def write_run(
+    result: RunResult,
+    out_dir: str | Path | RunFolderTarget,
+    extra_writers: Sequence[Writer] = (),
+    overwrite: bool = False,
+) -> Path:
+    """Write the run folder under a temporary name and move it into place when complete.
+
+    ``out_dir`` is a path or a :class:`~swarmpc.simulation.outdir.RunFolderTarget` reserved before
+    the run. An existing path there is replaced only when it is a swarmpc run folder and
+    ``overwrite`` is set (:class:`OutputError` otherwise). ``extra_writers`` add files (figures)
+    before the move. When the folder cannot be written, the run is written to the system's
+    temporary folder instead and the error says where.
+    """
+    target = out_dir if isinstance(out_dir, RunFolderTarget) else RunFolderTarget(out_dir, overwrite)
     try:
-        _write_contents(result, staging)
+        _write_contents(result, target.staging)
         for writer in extra_writers:
-            writer(result, staging)
-        if target.exists():
-            retired = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
-            os.replace(target, retired / target.name)
-            os.replace(staging, target)
-            shutil.rmtree(retired, ignore_errors=True)
-        else:
-            os.replace(staging, target)
+            writer(result, target.staging)
+        write_marker(target.staging)
+    except OSError as err:
+        target.discard()
+        raise OutputError(
+            f"{target.target}: cannot write the run folder ({err.strerror or err}); {_rescue(result)}"
+        ) from None
     except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
+        target.discard()
         raise
-    return target
+    return target.commit()
+
+
+def expected_run_bytes(scn: Scenario) -> int:
+    """An upper estimate of a run folder's size before compression: the arrays of a run that
+    lasts ``stop.max_steps`` (trajectory, inputs, per-step and per-agent records)."""
+    m, d, steps = scn.num_agents, scn.dim, scn.stop.max_steps
+    per_step = m * (2 * d + d + 2 * d) + 4 * m + 8
+    return 8 * (steps + 1) * per_step
+
+
+def _rescue(result: RunResult) -> str:
+    """Write the run to a new folder in the system's temporary folder; say where (or that not)."""
+    try:
+        folder = Path(tempfile.mkdtemp(prefix=f"swarmpc-{result.scenario.name}-"))
+        _write_contents(result, folder)
+        write_marker(folder)
+    except OSError as err:
+        return f"no copy could be kept either ({err.strerror or err})"
+    return f"the run is kept in {folder}"
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by None, so the JSON is strictly valid."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _write_contents(result: RunResult, folder: Path) -> None:
     scn = result.scenario
     (folder / "scenario.yaml").write_text(scenario_to_yaml(scn))
-    (folder / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
+    summary = json.dumps(json_safe(result.summary), indent=2, allow_nan=False)
+    (folder / "summary.json").write_text(summary + "\n")
     delta = np.asarray(scn.delta, float)
     arrays: dict[str, np.ndarray] = {
         "t": result.t,

@@ -9,10 +9,20 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
+import socket
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from multiprocessing.connection import Connection
 from typing import Any, Protocol
+
+
+RAY_CONNECT_TIMEOUT_S = 10.0
+"""How long joining a Ray cluster may take before the run is refused."""
+
+
+class ExecutorError(RuntimeError):
+    """An executor cannot start or lost its workers; the message is one line."""
 
 
 class LocalAgentLike(Protocol):
@@ -67,11 +77,19 @@ class ThreadExecutor(SerialExecutor):
 
 def _serve_agents(connection: Connection, factory: AgentFactory, agent_ids: Sequence[int]) -> None:
     """Worker-process main loop: build this worker's agents once, then answer batches until told
-    to stop (``None``). Exceptions travel back to the coordinator instead of killing the worker."""
+    to stop (``None``). Exceptions travel back to the coordinator instead of killing the worker.
+
+    Workers ignore SIGINT and SIGTERM: the coordinator receives them, finishes its step and stops
+    the workers itself. A worker whose coordinator vanished (its pipe closed) exits quietly."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
     agents = {i: factory(i) for i in agent_ids}
     connection.send(("ready", None))
     while True:
-        batch = connection.recv()
+        try:
+            batch = connection.recv()
+        except (EOFError, OSError):
+            return
         if batch is None:
             break
         try:
@@ -121,7 +139,10 @@ class ProcessExecutor:
 
     @staticmethod
     def _receive(connection: Connection) -> Any:
-        kind, payload = connection.recv()
+        try:
+            kind, payload = connection.recv()
+        except (EOFError, OSError):
+            raise ExecutorError("--executor: a worker process ended unexpectedly") from None
         if kind == "error":
             raise RuntimeError(f"local solve failed in a worker process: {payload}")
         return payload
@@ -147,7 +168,8 @@ class ProcessExecutor:
         for process in self._processes:
             process.join(timeout=5)
             if process.is_alive():
-                process.terminate()
+                process.kill()  # workers ignore SIGTERM
+                process.join(timeout=5)
         self._connections, self._processes, self._home = [], [], {}
 
 
@@ -183,15 +205,28 @@ class RayExecutor:
     def start(self, factory: AgentFactory, agent_ids: Sequence[int]) -> None:
         ray = self._ray
         if not ray.is_initialized():
-            ray.init(address=self._address, include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
-            self._started_ray = True
+            self._connect()
         ids = list(agent_ids)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         count = max(1, min(self._actors_wanted or cpus, len(ids)))
         host = ray.remote(num_cpus=0)(_RayAgentHost)
         self._actors = [host.remote(factory, ids[a::count]) for a in range(count)]
         self._home = {i: a for a in range(count) for i in ids[a::count]}
+
+    def _connect(self) -> None:
+        """Start a local Ray or join the cluster at the address, within a bounded time; every
+        way this can fail is an :class:`ExecutorError` of one line."""
+        if self._address not in (None, "auto", "local"):
+            check_reachable(self._address, RAY_CONNECT_TIMEOUT_S)
+        try:
+            self._ray.init(address=self._address, include_dashboard=False, log_to_driver=False,
+                           configure_logging=False)
+        except Exception as err:  # noqa: BLE001 - Ray raises many types for a failed connection
+            where = f"--address: cannot join the Ray cluster at {self._address}" if self._address \
+                else "--executor: cannot start a local Ray"
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise ExecutorError(f"{where}: {first}") from None
+        self._started_ray = True
 
     def solve(self, requests: Sequence[Any]) -> list[Any]:
         batches: dict[int, list[Any]] = {}
@@ -211,6 +246,20 @@ class RayExecutor:
         if self._started_ray:
             self._ray.shutdown()
             self._started_ray = False
+
+
+def check_reachable(address: str, timeout_s: float) -> None:
+    """Raise :class:`ExecutorError` unless a TCP connection to ``host:port`` (optionally behind
+    ``ray://``) opens within ``timeout_s``: Ray itself retries an unreachable address for minutes."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ExecutorError(f"--address: expected host:port, ray://host:port or auto, got {address!r}")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as err:
+        reason = "timed out" if isinstance(err, TimeoutError) else (err.strerror or type(err).__name__)
+        raise ExecutorError(f"--address: cannot reach the Ray cluster at {address} ({reason})") from None
 
 
 EXECUTORS = ("serial", "thread", "process", "ray")
