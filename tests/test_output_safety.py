@@ -188,3 +188,25 @@ def test_cli_replaces_its_own_run_only_with_overwrite(tmp_path):
     assert again.returncode == 2 and "--overwrite" in again.stderr
     assert run_cli(*args, "--overwrite", cwd=tmp_path).returncode == 0
     assert os.listdir(tmp_path / "results") == ["paper-2d"]
+
+
+def test_report_commands_keep_to_their_own_folders(tmp_path):
+    """bench and reproduce write only into new, empty or their own marked folders; a refused or
+    failed command leaves no folder behind."""
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "bench.md").write_text("my notes")
+    for args in (("bench", "--quick", "--out", "mine"), ("reproduce", "--quick", "--out", "mine"),
+                 ("bench", "--merge", "nothing.json", "--out", "fresh")):
+        done = run_cli(*args, cwd=tmp_path)
+        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]
+    assert (tmp_path / "mine" / "bench.md").read_text() == "my notes"
+
+
+@pytest.mark.parametrize("command", ["animate", "view"])
+def test_a_named_output_file_is_replaced_only_with_overwrite(tmp_path, tiny_run, command):
+    folder = write_run(tiny_run, tmp_path / "run")
+    (tmp_path / "notes.txt").write_text("mine")
+    done = run_cli(command, str(folder), "--out", "notes.txt", cwd=tmp_path)
+    assert done.returncode == 2 and "--overwrite" in done.stderr
+    assert (tmp_path / "notes.txt").read_text() == "mine"

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
 from types import FrameType
@@ -336,6 +338,37 @@ def result_paragraph(summary: dict[str, Any], folder: Path) -> str:
     )
 
 
+def check_out_file(out: Path | None, overwrite: bool) -> None:
+    """A user-named output file replaces an existing file only with --overwrite."""
+    from swarmpc.simulation.outdir import refuse_existing_file
+
+    if out is None:
+        return
+    try:
+        refuse_existing_file(out, overwrite)
+    except OutputError as err:
+        fail(str(err))
+
+
+@contextmanager
+def claimed_out_folder(out: Path, kind: str) -> Iterator[Path]:
+    """The output folder of a report command, refused when it is somebody else's; a folder this
+    command created is removed again when the command fails before writing into it."""
+    from swarmpc.simulation.outdir import claim_folder, normalise_target, unclaim_folder
+
+    new = not normalise_target(out).exists()
+    try:
+        folder = claim_folder(out, kind)
+    except OutputError as err:
+        fail(str(err))
+    try:
+        yield folder
+    except BaseException:
+        if new:
+            unclaim_folder(folder, kind)
+        raise
+
+
 @app.command()
 def scenarios() -> None:
     """List the built-in scenarios."""
@@ -363,6 +396,7 @@ def animate(
     run_dir: Annotated[Path, typer.Argument(help="a run folder")],
     format: Annotated[str, typer.Option("--format", help="gif or mp4")] = "gif",
     out: Annotated[Path | None, typer.Option(help="output file [RUN_DIR/animation.FORMAT]")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out file")] = False,
 ) -> None:
     """Animate a run: moving agents with their delta boxes, trails and a time stamp."""
     from swarmpc.plots import AnimationWriterError, RunDataError
@@ -371,6 +405,7 @@ def animate(
 
     if format not in ("gif", "mp4"):
         fail(f"--format: must be gif or mp4, got {format!r}")
+    check_out_file(out, overwrite)
     try:
         path = write_animation(load_run(run_dir), out or run_dir / f"animation.{format}", fmt=format)  # type: ignore[arg-type]
     except (RunDataError, AnimationWriterError, OSError) as err:
@@ -383,10 +418,12 @@ def view(
     run_dir: Annotated[Path, typer.Argument(help="a run folder")],
     out: Annotated[Path | None, typer.Option(help="output HTML [RUN_DIR/view.html]")] = None,
     open_browser: Annotated[bool, typer.Option("--open", help="open it in the default browser")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out file")] = False,
 ) -> None:
     """Write one self-contained interactive HTML page of a run (works offline)."""
     from swarmpc.viewer import write_view
 
+    check_out_file(out, overwrite)
     if not (run_dir / "trajectory.npz").is_file():
         fail(f"{run_dir}: not a run folder (no trajectory.npz)")
     try:
@@ -408,8 +445,9 @@ def reproduce(
     from swarmpc.experiments.reproduce import reproduce as run_set
 
     try:
-        report = run_set(out, quick=quick, jobs=jobs, reuse=reuse, animations=animations,
-                         log=lambda line: typer.echo(line, err=True))
+        with claimed_out_folder(out, "reproduce"):
+            report = run_set(out, quick=quick, jobs=jobs, reuse=reuse, animations=animations,
+                             log=lambda line: typer.echo(line, err=True))
     except KeyboardInterrupt:
         interrupted(f"swarmpc: interrupted; finished run folders are kept in {out}/runs "
                     "(--reuse skips them next time)")
@@ -440,11 +478,12 @@ def bench(
 ) -> None:
     """The scaling benchmark: swarms of growing size; writes OUT/bench.md and OUT/bench.json
     (rewritten after every finished run, so a long study interrupted keeps what it measured)."""
-    from swarmpc.bench import merge_reports, run_bench
+    from swarmpc.bench import FAMILIES, merge_reports, run_bench
 
     if merge:
         try:
-            markdown, _ = merge_reports(merge, out)
+            with claimed_out_folder(out, "bench"):
+                markdown, _ = merge_reports(merge, out)
         except ValueError as err:
             fail(f"--merge: {str(err).splitlines()[0]}")
         typer.echo(str(markdown))
@@ -456,14 +495,19 @@ def bench(
         fail(f"--sizes: expected comma-separated integers, got {sizes!r}")
     if size_list is not None and any(m < 1 for m in size_list):
         fail(f"--sizes: every size must be >= 1, got {sizes!r}")
+    family_list = [f.strip() for f in families.split(",") if f.strip()]
+    unknown = sorted(set(family_list) - set(FAMILIES))
+    if unknown or not family_list:
+        fail(f"--families: unknown {', '.join(unknown) or 'none given'} (choose from {', '.join(FAMILIES)})")
     try:
-        markdown, _ = run_bench(
-            out, quick=quick, families=[f.strip() for f in families.split(",") if f.strip()],
-            sizes=size_list, seeds=seeds, jobs=jobs, executor=executor.value, workers=workers,
-            budget_s=budget, central_max_agents=central_max_agents, max_steps=max_steps,
-            log=lambda line: typer.echo(line, err=True), first_seed=first_seed, save_runs=save_runs,
-            plane_margin=plane_margin,
-        )
+        with claimed_out_folder(out, "bench"):
+            markdown, _ = run_bench(
+                out, quick=quick, families=family_list,
+                sizes=size_list, seeds=seeds, jobs=jobs, executor=executor.value, workers=workers,
+                budget_s=budget, central_max_agents=central_max_agents, max_steps=max_steps,
+                log=lambda line: typer.echo(line, err=True), first_seed=first_seed, save_runs=save_runs,
+                plane_margin=plane_margin,
+            )
     except ValueError as err:
         fail(f"--{str(err).splitlines()[0]}")
     typer.echo(str(markdown))

@@ -190,3 +190,46 @@ class RunFolderTarget:
             if folder == self._created:
                 return
             folder = folder.parent
+
+
+def claim_folder(path: str | Path, kind: str) -> Path:
+    """A folder that swarmpc may fill with files of ``kind`` (``bench``, ``reproduce``): a new or
+    empty folder is created and marked ``.swarmpc-<kind>``; a folder with that marker is reused;
+    anything else is refused, so a report never overwrites a user's file of the same name."""
+    folder = normalise_target(path)
+    marker = folder / f".swarmpc-{kind}"
+    if os.path.islink(folder):
+        raise OutputError(f"{folder}: is a symbolic link; choose a real folder for --out")
+    if os.path.lexists(folder) and not _is_empty_folder(folder):
+        if not (folder.is_dir() and marker.is_file() and not marker.is_symlink()):
+            raise OutputError(f"{folder}: exists and is not a swarmpc {kind} folder; choose another --out")
+        return folder
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        marker.write_text(json.dumps({"format": f"swarmpc-{kind}", "version": 1}) + "\n")
+    except OSError as err:
+        raise OutputError(f"{folder}: cannot write there ({err.strerror or err})") from None
+    return folder
+
+
+def unclaim_folder(folder: Path, kind: str) -> None:
+    """Undo :func:`claim_folder` of a folder nothing was written to: its marker goes, then the
+    folder if that left it empty (nothing else is ever removed)."""
+    marker = f".swarmpc-{kind}"
+    try:
+        if os.listdir(folder) == [marker]:
+            (folder / marker).unlink()
+            folder.rmdir()
+    except OSError:
+        pass
+
+
+def refuse_existing_file(path: Path, overwrite: bool) -> None:
+    """An output file given by the user (``--out FILE``) may replace an existing file only with
+    ``overwrite``, and never a folder or a link."""
+    if not os.path.lexists(path):
+        return
+    if os.path.islink(path) or not path.is_file():
+        raise OutputError(f"{path}: exists and is not a regular file; choose another --out")
+    if not overwrite:
+        raise OutputError(f"{path}: exists; --overwrite replaces it")
