@@ -13,13 +13,15 @@ Numbers are wall-clock measurements on whatever machine runs it: read them as su
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -394,41 +396,137 @@ def write_report(
     return markdown, json_path
 
 
-def load_outcomes(path: Path) -> list[CaseOutcome]:
-    """The runs of a ``bench.json`` (or of the one in folder ``path``)."""
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _is_finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_finite_or_none(value: Any) -> bool:
+    return value is None or _is_finite(value)
+
+
+def _is_ratio(value: Any) -> bool:  # inf: a single agent has no neighbour
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0
+
+
+def _is_finite_list(value: Any) -> bool:
+    return isinstance(value, list) and all(_is_finite(v) for v in value)
+
+
+def _is_count_list(value: Any) -> bool:
+    return isinstance(value, list) and all(_is_count(v) for v in value)
+
+
+_OUTCOME_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyType({
+    "steps": (_is_count, "a count"), "timed_out": (lambda v: isinstance(v, bool), "true or false"),
+    "all_reached": (lambda v: isinstance(v, bool), "true or false"), "collisions": (_is_count, "a count"),
+    "min_separation_ratio": (_is_ratio, "a number >= 0"), "time_to_goal_s": (_is_finite_or_none, "a number or null"),
+    "cost": (_is_finite, "a finite number"), "step_ms": (_is_finite_list, "a list of finite numbers"),
+    "agent_step_ms": (_is_finite_list, "a list of finite numbers"), "iterations": (_is_count_list, "a list of counts"),
+    "solver_failures": (_is_count, "a count"), "wall_time_s": (_is_finite, "a finite number"),
+    "unreached": (_is_count_list, "a list of agent indices"), "worst_goal_distance": (_is_finite, "a finite number"),
+    "copies_mean": (_is_finite_or_none, "a number or null"), "planes_mean": (_is_finite_or_none, "a number or null"),
+})  # fmt: skip
+"""What each field of a ``bench.json`` run must hold (what :func:`write_report` writes)."""
+
+_CASE_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyType({
+    "family": (lambda v: v in FAMILIES, f"one of {', '.join(FAMILIES)}"),
+    "agents": (lambda v: _is_count(v) and v >= 1, "a count >= 1"), "seed": (_is_count, "a count"),
+    "method": (lambda v: v in ("admm", "centralized"), "admm or centralized"),
+    "executor": (lambda v: isinstance(v, str), "a name"),
+    "workers": (lambda v: v is None or _is_count(v), "a count or null"),
+    "budget_s": (_is_finite, "a finite number"), "max_steps": (lambda v: v is None or _is_count(v), "a count or null"),
+    "plane_margin": (_is_finite_or_none, "a number or null"),
+})  # fmt: skip
+
+
+def _checked_fields(data: Any, checks: Mapping[str, tuple[Callable[[Any], bool], str]], required: Iterable[str],
+                    where: str) -> dict[str, Any]:
+    """The fields of the JSON object ``data`` that ``checks`` knows, each checked; ValueError
+    (one line, ``where`` first) on a missing required field or a wrong value."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where or 'the file'}: expected an object, got {type(data).__name__}")
+    missing = [key for key in required if key not in data]
+    if missing:
+        raise ValueError(f"{where + ': ' if where else ''}missing '{missing[0]}'")
+    for key, (check, expected) in checks.items():
+        if key in data and not check(data[key]):
+            raise ValueError(f"{where + '.' if where else ''}{key}: expected {expected}, got {_shown(data[key])}")
+    return {key: value for key, value in data.items() if key in checks}
+
+
+def _shown(value: Any) -> str:
+    """A JSON value, briefly: a container by its kind, anything else as JSON (cut at 60 characters)."""
+    if isinstance(value, (dict, list)):
+        return "an object" if isinstance(value, dict) else f"a list of {len(value)}"
+    return json.dumps(value)[:60]
+
+
+def _required_fields(cls: type) -> list[str]:
+    return [f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING]
+
+
+def _outcome_from_json(run: Any, where: str) -> CaseOutcome:
+    """One run of a ``bench.json`` as a :class:`CaseOutcome`; ValueError when it is not one."""
+    if isinstance(run, dict) and "step_ms" in run and run["step_ms"] is None:
+        raise ValueError(f"{where}: holds no per-step times (written by an older swarmpc)")
+    values = _checked_fields(run, _OUTCOME_CHECKS, _required_fields(CaseOutcome), where)
+    case = _checked_fields(run["case"], _CASE_CHECKS, _required_fields(BenchCase), f"{where}.case")
+    values["unreached"] = tuple(values.get("unreached", ()))
+    return CaseOutcome(case=BenchCase(**case), **values)
+
+
+def read_report(path: Path) -> tuple[list[CaseOutcome], str, float]:
+    """The runs, machine and elapsed seconds of a ``bench.json`` (or of the one in folder ``path``).
+
+    The file may come from another machine or a damaged copy: anything that is not what
+    :func:`write_report` writes (not JSON, a wrong structure, a missing key, NaN where a number
+    belongs) is a ValueError whose message is one line naming the file.
+    """
     path = path / "bench.json" if path.is_dir() else path
     try:
-        runs = json.loads(path.read_text())["runs"]
-        outcomes = []
-        for run in runs:
-            if run.get("step_ms") is None:
-                raise ValueError(f"{path} holds no per-step times (written by an older swarmpc)")
-            fields = {k: v for k, v in run.items() if k in CaseOutcome.__dataclass_fields__}
-            fields["case"] = BenchCase(**run["case"])
-            fields["unreached"] = tuple(fields.get("unreached", ()))
-            outcomes.append(CaseOutcome(**fields))
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as err:
-        raise ValueError(f"{path}: not a swarmpc bench.json ({type(err).__name__}: {err})") from None
-    return outcomes
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: cannot read ({type(err).__name__})") from None
+    except (json.JSONDecodeError, RecursionError) as err:
+        detail = f" ({err.msg} at line {err.lineno})" if isinstance(err, json.JSONDecodeError) else ""
+        raise ValueError(f"{path}: not a swarmpc bench.json: not valid JSON{detail}") from None
+    try:
+        _checked_fields(data, {"runs": (lambda v: isinstance(v, list), "a list"),
+                               "machine": (lambda v: isinstance(v, str), "text"),
+                               "elapsed_s": (_is_finite, "a finite number")}, ["runs"], "")
+        outcomes = [_outcome_from_json(run, f"runs[{n}]") for n, run in enumerate(data["runs"])]
+    except ValueError as err:
+        raise ValueError(f"{path}: not a swarmpc bench.json: {err}") from None
+    return outcomes, str(data.get("machine", "?")), float(data.get("elapsed_s", 0.0))
+
+
+def load_outcomes(path: Path) -> list[CaseOutcome]:
+    """The runs of a ``bench.json`` (or of the one in folder ``path``); see :func:`read_report`."""
+    return read_report(path)[0]
 
 
 def merge_reports(sources: Sequence[Path], out: Path) -> tuple[Path, Path]:
     """One report from the runs of several ``bench.json`` files (e.g. seeds split over sessions
-    with ``--first-seed``); the same case in two sources is an error, not a silent pick."""
+    with ``--first-seed``); the same case in two sources is an error, not a silent pick. Every
+    source is read and checked before anything is written."""
     outcomes: list[CaseOutcome] = []
     seen: dict[BenchCase, Path] = {}
     machines: list[str] = []
     elapsed = 0.0
     for source in sources:
-        for outcome in load_outcomes(source):
+        runs, machine, seconds = read_report(source)
+        for outcome in runs:
             if outcome.case in seen:
                 c = outcome.case
                 raise ValueError(f"case {c.family} M={c.agents} seed={c.seed} {c.method} is in both "
                                  f"{seen[outcome.case]} and {source}")
             seen[outcome.case] = source
             outcomes.append(outcome)
-        data = json.loads((source / "bench.json" if source.is_dir() else source).read_text())
-        machines.append(str(data.get("machine", "?")))
-        elapsed += float(data.get("elapsed_s", 0.0))
+        machines.append(machine)
+        elapsed += seconds
     machine = "; ".join(sorted(set(machines))) + f"; merged from {len(sources)} reports"
     return write_report(out, outcomes, machine, elapsed)

@@ -299,11 +299,14 @@ def _simulate_with_progress(
 
 
 def _write_with_figure(result: Any, target: RunFolderTarget) -> Path:
-    from swarmpc.plots import load_run, plot_trajectories
+    from swarmpc.plots import RunDataError, load_run, plot_trajectories
     from swarmpc.simulation.results import RunResult, write_run
 
     def figure(run: RunResult, folder: Path) -> None:
-        plot_trajectories(load_run(folder), folder / "trajectory.png")
+        try:
+            plot_trajectories(load_run(folder), folder / "trajectory.png")
+        except RunDataError as err:  # a run whose arrays cannot be drawn is still written
+            typer.echo(f"swarmpc: warning: no trajectory.png: {str(err).splitlines()[0]}", err=True)
 
     try:
         return write_run(result, target, extra_writers=[figure])
@@ -484,7 +487,7 @@ def bench(
         try:
             with claimed_out_folder(out, "bench"):
                 markdown, _ = merge_reports(merge, out)
-        except ValueError as err:
+        except (ValueError, OSError) as err:
             fail(f"--merge: {str(err).splitlines()[0]}")
         typer.echo(str(markdown))
         return

@@ -1,8 +1,10 @@
 """Figures and animations of a finished run folder.
 
 Reads what a run writes (``trajectory.npz``, ``summary.json``, ``scenario.yaml`` and, for ADMM
-runs, ``admm.npz``) and draws the paper's figures: the trajectories with the agents' boxes and the
-obstacles (Fig. 3), the ADMM residuals per iteration (Fig. 4) and an animation.
+runs, ``admm.npz``) through the package's one reader, :func:`swarmpc.simulation.rundata.load_run`
+(re-exported here with :class:`RunData` and :class:`RunDataError`), and draws the paper's
+figures: the trajectories with the agents' boxes and the obstacles (Fig. 3), the ADMM residuals
+per iteration (Fig. 4) and an animation.
 
 Only the object-oriented matplotlib API is used (:class:`~matplotlib.figure.Figure` with an Agg
 canvas), never :mod:`matplotlib.pyplot`: no window opens, no backend is switched and no figure
@@ -11,11 +13,9 @@ lingers in a global registry after it is saved.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -31,8 +31,13 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
-from swarmpc.config import Scenario, load_scenario
+from swarmpc.config import Scenario
 from swarmpc.model.geometry import count_collisions, inf_separation_ratio
+from swarmpc.simulation.rundata import AdmmResiduals as AdmmResiduals
+from swarmpc.simulation.rundata import MissingRunFileError as MissingRunFileError
+from swarmpc.simulation.rundata import RunData as RunData
+from swarmpc.simulation.rundata import RunDataError as RunDataError
+from swarmpc.simulation.rundata import load_run as load_run
 
 PathLike = str | os.PathLike[str]
 
@@ -47,216 +52,8 @@ GID_OBSTACLE = "obstacle"
 GID_TOLERANCE = "tolerance"
 
 
-class RunDataError(ValueError):
-    """A run folder that cannot be plotted; the message is one line naming the file."""
-
-
-class MissingRunFileError(RunDataError, FileNotFoundError):
-    """A run folder lacks a required file (``trajectory.npz`` or ``scenario.yaml``)."""
-
-
 class AnimationWriterError(RuntimeError):
     """The requested animation format needs a tool that is not installed."""
-
-
-# --------------------------------------------------------------------------------- run data
-@dataclass(frozen=True, eq=False)
-class AdmmResiduals:
-    """ADMM residual histories of a run.
-
-    Attributes
-    ----------
-    primal, dual : np.ndarray
-        (steps, max_iter) residual per MPC step and ADMM iteration, NaN after convergence.
-    iterations : np.ndarray
-        (steps,) number of ADMM iterations of each MPC step.
-    """
-
-    primal: np.ndarray
-    dual: np.ndarray
-    iterations: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class RunData:
-    """Everything a run folder holds, as read-only arrays.
-
-    Attributes
-    ----------
-    run_dir : Path
-        The folder the run was loaded from.
-    t : np.ndarray
-        (T+1,) time stamps [s].
-    states : np.ndarray
-        (T+1, M, 2d) states [position, velocity].
-    inputs : np.ndarray
-        (T, M, d) accelerations.
-    goals : np.ndarray
-        (M, 2d) goal states.
-    delta : np.ndarray
-        (d,) half-size of the box around each agent, per axis.
-    dt : float
-        Sampling time [s].
-    scenario : Scenario
-        The fully resolved scenario of the run.
-    summary : dict
-        ``summary.json`` (empty when the file is absent).
-    admm : AdmmResiduals or None
-        Residual histories from ``admm.npz``; None when the run has none.
-    disturbances : np.ndarray or None
-        (T, M, 2d) additive disturbances when the run recorded them.
-    """
-
-    run_dir: Path
-    t: np.ndarray
-    states: np.ndarray
-    inputs: np.ndarray
-    goals: np.ndarray
-    delta: np.ndarray
-    dt: float
-    scenario: Scenario
-    summary: dict[str, Any]
-    admm: AdmmResiduals | None = None
-    disturbances: np.ndarray | None = None
-
-    @property
-    def dim(self) -> int:
-        """Spatial dimension d (2 or 3)."""
-        return self.scenario.dim
-
-    @property
-    def num_agents(self) -> int:
-        """Number of agents M."""
-        return int(self.states.shape[1])
-
-    @property
-    def num_steps(self) -> int:
-        """Number of closed-loop steps T (the run has T+1 states)."""
-        return int(self.states.shape[0]) - 1
-
-    @property
-    def positions(self) -> np.ndarray:
-        """(T+1, M, d) positions."""
-        return self.states[:, :, : self.dim]
-
-    @property
-    def name(self) -> str:
-        """Scenario name."""
-        return str(self.summary.get("scenario", self.scenario.name))
-
-
-def _frozen(array: np.ndarray) -> np.ndarray:
-    array = np.array(array, dtype=float)
-    array.setflags(write=False)
-    return array
-
-
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {key: np.asarray(data[key]) for key in data.files}
-    except (OSError, ValueError) as err:
-        raise RunDataError(f"{path}: cannot read ({err.__class__.__name__}: {err})") from None
-
-
-def _load_admm(path: Path) -> AdmmResiduals | None:
-    if not path.is_file():
-        return None
-    data = _read_npz(path)
-    for key in ("primal", "dual"):
-        if key not in data:
-            raise RunDataError(f"{path}: missing array '{key}'")
-    primal = np.atleast_2d(data["primal"]).astype(float)
-    dual = np.atleast_2d(data["dual"]).astype(float)
-    if primal.shape != dual.shape:
-        raise RunDataError(f"{path}: 'primal' {primal.shape} and 'dual' {dual.shape} differ in shape")
-    if "iterations" in data:
-        iterations = np.asarray(data["iterations"], float).reshape(-1)
-    else:
-        iterations = np.sum(np.isfinite(primal), axis=1).astype(float)
-    if iterations.shape != (primal.shape[0],):
-        raise RunDataError(f"{path}: 'iterations' has {iterations.size} entries for {primal.shape[0]} steps")
-    return AdmmResiduals(_frozen(primal), _frozen(dual), _frozen(iterations))
-
-
-def load_run(run_dir: PathLike) -> RunData:
-    """Load a run folder.
-
-    Parameters
-    ----------
-    run_dir : str or PathLike
-        Folder with ``trajectory.npz`` and ``scenario.yaml`` (required), ``summary.json`` and
-        ``admm.npz`` (optional).
-
-    Returns
-    -------
-    RunData
-
-    Raises
-    ------
-    MissingRunFileError
-        When the folder or one of its required files does not exist (a ``ValueError`` and a
-        ``FileNotFoundError``; the message names the missing file).
-    RunDataError
-        When a file is unreadable or its arrays have inconsistent shapes.
-    """
-    folder = Path(run_dir)
-    if not folder.is_dir():
-        raise MissingRunFileError(f"{folder}: no such run folder")
-    for required in ("trajectory.npz", "scenario.yaml"):
-        if not (folder / required).is_file():
-            raise MissingRunFileError(f"{folder}: missing {required} (is this a run folder?)")
-    scenario = load_scenario(folder / "scenario.yaml")
-    dim = scenario.dim
-    traj_path = folder / "trajectory.npz"
-    data = _read_npz(traj_path)
-    for key in ("t", "states"):
-        if key not in data:
-            raise RunDataError(f"{traj_path}: missing array '{key}'")
-    states = np.asarray(data["states"], float)
-    if states.ndim != 3 or states.shape[2] != 2 * dim or states.shape[0] < 1:
-        raise RunDataError(f"{traj_path}: 'states' must be (T+1, M, {2 * dim}) for dim {dim}, got {states.shape}")
-    steps, m = states.shape[0] - 1, states.shape[1]
-    t = np.asarray(data["t"], float).reshape(-1)
-    if t.shape != (steps + 1,):
-        raise RunDataError(f"{traj_path}: 't' has {t.size} entries for {steps + 1} states")
-    inputs = np.asarray(data.get("inputs", np.full((steps, m, dim), np.nan)), float)
-    if inputs.shape != (steps, m, dim):
-        raise RunDataError(f"{traj_path}: 'inputs' must be {(steps, m, dim)}, got {inputs.shape}")
-    goals = np.asarray(data.get("goals", scenario.goal_states()), float)
-    if goals.shape == (m, dim):
-        goals = np.hstack([goals, np.zeros((m, dim))])
-    if goals.shape != (m, 2 * dim):
-        raise RunDataError(f"{traj_path}: 'goals' must be {(m, 2 * dim)}, got {goals.shape}")
-    delta = np.asarray(data.get("delta", scenario.delta_vector), float)
-    try:
-        delta = np.broadcast_to(delta, (dim,)).copy()
-    except ValueError:
-        raise RunDataError(f"{traj_path}: 'delta' must be a scalar or {dim} values, got {delta.shape}") from None
-    dt = float(np.asarray(data.get("dt", scenario.dt)))
-    disturbances = data.get("disturbances")
-    summary: dict[str, Any] = {}
-    summary_path = folder / "summary.json"
-    if summary_path.is_file():
-        try:
-            summary = json.loads(summary_path.read_text())
-        except (OSError, ValueError) as err:
-            raise RunDataError(f"{summary_path}: cannot read ({err.__class__.__name__})") from None
-        if not isinstance(summary, dict):
-            raise RunDataError(f"{summary_path}: expected a JSON object")
-    return RunData(
-        run_dir=folder,
-        t=_frozen(t),
-        states=_frozen(states),
-        inputs=_frozen(inputs),
-        goals=_frozen(goals),
-        delta=_frozen(delta),
-        dt=dt,
-        scenario=scenario,
-        summary=summary,
-        admm=_load_admm(folder / "admm.npz"),
-        disturbances=None if disturbances is None else _frozen(disturbances),
-    )
 
 
 # --------------------------------------------------------------------------------- geometry
@@ -439,7 +236,7 @@ def frame_indices(num_states: int, max_frames: int) -> np.ndarray:
 
 def _view_limits(run: RunData) -> tuple[np.ndarray, np.ndarray]:
     """Axis limits covering the workspace (or scenario bounds), the paths and the goals."""
-    lower, upper = run.scenario.bounds()
+    lower, upper = _scenario(run).bounds()
     pos = run.positions.reshape(-1, run.dim)
     goals = run.goals[:, : run.dim]
     lower = np.minimum(lower, np.minimum(pos.min(axis=0), goals.min(axis=0)) - run.delta)
@@ -453,7 +250,7 @@ def _obstacle_vertices(run: RunData) -> list[np.ndarray]:
     lower, upper = _view_limits(run)
     margin = 0.5 * (upper - lower).max()
     out = []
-    for G, g in run.scenario.obstacle_halfspaces():
+    for G, g in _scenario(run).obstacle_halfspaces():
         vertices = polytope_vertices(G, g, (lower - margin, upper + margin))
         if len(vertices):
             out.append(vertices)
@@ -463,24 +260,37 @@ def _obstacle_vertices(run: RunData) -> list[np.ndarray]:
 def _headline(run: RunData) -> str:
     """Title: scenario, method and the safety numbers of the run."""
     s = run.summary
-    method = s.get("method", run.scenario.solver.method)
-    collision = s.get("collision", run.scenario.collision)
-    first = f"{run.name}  ({method}, {collision} constraints, {run.num_agents} agents, {run.dim}D)"
+    method = s.get("method", _scenario(run).solver.method)
+    collision = s.get("collision", _scenario(run).collision)
+    first = (f"{_plain(run.name)}  ({_plain(method)}, {_plain(collision)} constraints, "
+             f"{run.num_agents} agents, {run.dim}D)")
     ratio = inf_separation_ratio(run.positions, run.delta).min() if run.num_agents > 1 else np.inf
     collisions = s.get("collisions")
     if collisions is None:
         collisions = count_collisions(run.positions, run.delta)
     sep = f"{ratio:.2f}" if np.isfinite(ratio) else "n/a"
-    parts = [f"collisions: {collisions}", rf"min $\|p_i - p_j\|_\infty/\delta$ = {sep}"]
+    parts = [f"collisions: {_plain(collisions)}", rf"min $\|p_i - p_j\|_\infty/\delta$ = {sep}"]
     reached = s.get("reached")
     if isinstance(reached, list):
         parts.append(f"reached: {sum(bool(r) for r in reached)}/{run.num_agents}")
-    elif isinstance(reached, (int, float)) and not isinstance(reached, bool):
+    elif isinstance(reached, (int, float)) and not isinstance(reached, bool) and math.isfinite(reached):
         parts.append(f"reached: {int(reached)}/{run.num_agents}")
     elif "all_reached" in s:
         parts.append("all reached" if s["all_reached"] else "not all reached")
     parts.append(f"T = {run.t[-1] - run.t[0]:.1f} s")
     return first + "\n" + "   ·   ".join(parts)
+
+
+def _scenario(run: RunData) -> Scenario:
+    """The run's scenario, which every figure needs (obstacles, workspace, method)."""
+    if run.scenario is None:
+        raise RunDataError(f"{run.run_dir}: no scenario.yaml; figures need the run's scenario")
+    return run.scenario
+
+
+def _plain(value: Any) -> str:
+    """``value`` as text that matplotlib shows as it is (a ``$`` would start mathtext)."""
+    return str(value).replace("$", r"\$")
 
 
 def _new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:
@@ -506,7 +316,7 @@ def _draw_static_planar(ax: Axes, run: RunData, axes: tuple[int, int], obstacles
                 Polygon(outline, closed=True, facecolor=OBSTACLE_COLOR, edgecolor="0.3",
                         linewidth=0.8, alpha=0.85, zorder=1, gid=GID_OBSTACLE)
             )
-    workspace = run.scenario.workspace
+    workspace = _scenario(run).workspace
     if workspace is not None:
         lo = np.asarray(workspace.lower)[list(axes)]
         hi = np.asarray(workspace.upper)[list(axes)]
@@ -556,7 +366,7 @@ def _legend_handles(run: RunData, colors: list[Any], obstacles: bool) -> list[An
     ]
     if obstacles:
         handles.append(Patch(facecolor=OBSTACLE_COLOR, edgecolor="0.3", label="obstacle"))
-    if run.scenario.workspace is not None:
+    if _scenario(run).workspace is not None:
         handles.append(Line2D([], [], color="0.2", linestyle="--", label="workspace"))
     return handles
 
@@ -723,7 +533,7 @@ def make_convergence_figure(run: RunData, steps: Sequence[int] | None = None) ->
     ax_it.set_ylabel("ADMM iterations")
     ax_it.set_title("iterations per MPC step", fontsize=9)
     ax_it.grid(True, axis="y", linewidth=0.4, alpha=0.4)
-    fig.suptitle(f"{run.name}: ADMM convergence ({total} MPC steps)", fontsize=10)
+    fig.suptitle(f"{_plain(run.name)}: ADMM convergence ({total} MPC steps)", fontsize=10)
     return fig
 
 
@@ -900,7 +710,8 @@ def animate(
         _draw_static_planar(ax, run, (0, 1), obstacles)
         ax.set_title("top view (x-y)", fontsize=9)
         updates = [_spatial_movers(ax3, run, colors), _planar_movers(ax, run, (0, 1), colors)]
-    fig.suptitle(f"{run.name} ({run.summary.get('method', run.scenario.solver.method)})", fontsize=10)
+    method = run.summary.get("method", _scenario(run).solver.method)
+    fig.suptitle(f"{_plain(run.name)} ({_plain(method)})", fontsize=10)
     clock = ax.text(0.02, 0.98, "", transform=ax.transAxes, fontsize=9, va="top", ha="left", zorder=10,
                     bbox={"boxstyle": "round,pad=0.3", "facecolor": "white", "edgecolor": "0.6", "alpha": 0.85})
     label = _time_format(times)

@@ -30,25 +30,25 @@ in ``frame.traces``; plotly.js merges it into those traces.
 The ``swarmpc view RUN_DIR [--out FILE.html] [--open]`` command maps onto
 ``write_view(RUN_DIR, out=FILE, open_browser=OPEN)``.
 
-Only :mod:`swarmpc.config` is imported from the package; plotly (``pip install plotly``, the
-``view`` extra) and scipy are imported here.
+The run folder is read by the package's one reader, :func:`swarmpc.simulation.rundata.load_run`
+(here with ``scenario.yaml`` optional), so a damaged folder is one ``ValueError`` line naming the
+file. plotly and scipy are imported lazily, when a figure is built.
 """
 
 from __future__ import annotations
 
 import html
-import json
 import math
 import os
 import webbrowser
-import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from swarmpc.config import Scenario, load_scenario
+from swarmpc.simulation.rundata import RunData
+from swarmpc.simulation.rundata import load_run as load_run_data
 
 __all__ = [
     "MAX_FRAMES",
@@ -60,6 +60,7 @@ __all__ = [
     "figure_dict",
     "frame_indices",
     "load_run",
+    "run_figure_dict",
     "polytope_vertices",
     "write_view",
 ]
@@ -77,90 +78,18 @@ _CLOSEST_COLOR = "rgb(214, 39, 40)"
 
 
 # --------------------------------------------------------------------------------------- data
-@dataclass
-class Run:
-    """The arrays and metadata of one run folder."""
-
-    run_dir: Path
-    t: np.ndarray  # (T+1,)
-    positions: np.ndarray  # (T+1, M, d)
-    velocities: np.ndarray  # (T+1, M, d)
-    goals: np.ndarray  # (M, d) goal positions
-    delta: np.ndarray  # (d,)
-    dt: float
-    summary: dict[str, Any] = field(default_factory=dict)
-    scenario: Scenario | None = None
-
-    @property
-    def dim(self) -> int:
-        return int(self.positions.shape[2])
-
-    @property
-    def num_agents(self) -> int:
-        return int(self.positions.shape[1])
-
-    @property
-    def name(self) -> str:
-        if self.scenario is not None:
-            return self.scenario.name
-        return str(self.summary.get("scenario", self.run_dir.name))
+Run = RunData
+"""The viewer's name for a loaded run folder (the shared :class:`~swarmpc.simulation.rundata.RunData`)."""
 
 
-def load_run(run_dir: str | Path) -> Run:
-    """Read ``trajectory.npz`` (required), ``summary.json`` and ``scenario.yaml`` (optional)."""
-    folder = Path(run_dir)
-    traj_file = folder / "trajectory.npz"
-    if not traj_file.is_file():
-        raise FileNotFoundError(f"{folder}: no trajectory.npz (is this a run folder?)")
-    try:
-        with np.load(traj_file, allow_pickle=False) as data:
-            if "states" not in data:
-                raise ValueError(f"{traj_file}: no 'states' array (not a swarmpc trajectory)")
-            states = np.asarray(data["states"], float)
-            if states.ndim != 3 or states.shape[2] % 2:
-                raise ValueError(f"{traj_file}: states must be (T+1, M, 2d), got {states.shape}")
-            dim = states.shape[2] // 2
-            dt = float(data["dt"]) if "dt" in data else 0.1
-            t = np.asarray(data["t"], float) if "t" in data else dt * np.arange(states.shape[0])
-            goals = np.asarray(data["goals"], float) if "goals" in data else None
-            delta_raw = np.asarray(data["delta"], float) if "delta" in data else None
-    except (zipfile.BadZipFile, EOFError) as err:
-        raise ValueError(f"{traj_file}: unreadable ({err.__class__.__name__}: {err})") from None
+def load_run(run_dir: str | Path) -> RunData:
+    """Read a run folder with the shared reader, ``scenario.yaml`` optional.
 
-    summary: dict[str, Any] = {}
-    summary_file = folder / "summary.json"
-    if summary_file.is_file():
-        loaded = json.loads(summary_file.read_text())
-        summary = loaded if isinstance(loaded, dict) else {}
-
-    scenario: Scenario | None = None
-    scenario_file = folder / "scenario.yaml"
-    if scenario_file.is_file():
-        scenario = load_scenario(scenario_file)
-        if scenario.dim != dim:
-            raise ValueError(
-                f"{folder}: scenario.yaml has dim {scenario.dim} but the trajectory has dim {dim}"
-            )
-
-    if goals is None:
-        if scenario is None:
-            goals = states[-1]
-        else:
-            goals = scenario.goal_states()
-    if delta_raw is None:
-        delta_raw = scenario.delta_vector if scenario is not None else np.array(0.3)
-    delta = np.broadcast_to(delta_raw, (dim,)).astype(float).copy()
-    return Run(
-        run_dir=folder,
-        t=t,
-        positions=states[:, :, :dim],
-        velocities=states[:, :, dim:],
-        goals=np.asarray(goals, float)[:, :dim],
-        delta=delta,
-        dt=dt,
-        summary=summary,
-        scenario=scenario,
-    )
+    A bare folder (``trajectory.npz`` with ``dt``, ``goals`` and ``delta``, nothing else) still
+    renders, without obstacles or workspace; any damaged file is a one-line
+    :class:`~swarmpc.simulation.rundata.RunDataError` (a ``ValueError``) naming it.
+    """
+    return load_run_data(run_dir, require_scenario=False)
 
 
 @dataclass(frozen=True)
@@ -399,7 +328,7 @@ def _neighbour_table(positions: np.ndarray, delta: np.ndarray) -> tuple[np.ndarr
     return d_inf[rows, n_inf], n_inf, d_two[rows, n_two], n_two, ratio.min(axis=1)
 
 
-def _title(run: Run, closest: ClosestApproach | None) -> str:
+def _title(run: RunData, closest: ClosestApproach | None) -> str:
     s = run.summary
     method = s.get("method") or (run.scenario.solver.method if run.scenario else "?")
     collision = s.get("collision") or (run.scenario.collision if run.scenario else "?")
@@ -447,7 +376,11 @@ def build_figure(run_dir: str | Path, max_frames: int = MAX_FRAMES):  # -> plotl
 
 def figure_dict(run_dir: str | Path, max_frames: int = MAX_FRAMES) -> dict[str, Any]:
     """The figure of :func:`build_figure` as a plain plotly dictionary (data, layout, frames)."""
-    run = load_run(run_dir)
+    return run_figure_dict(load_run(run_dir), max_frames)
+
+
+def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any]:
+    """:func:`figure_dict` of a run already loaded (see :func:`load_run`)."""
     d, m = run.dim, run.num_agents
     is3d = d == 3
     P, V, t, delta = run.positions, run.velocities, run.t, run.delta
@@ -465,8 +398,8 @@ def figure_dict(run_dir: str | Path, max_frames: int = MAX_FRAMES) -> dict[str, 
     if finite.size:
         lo = np.minimum(lo, finite.min(axis=0) - delta)
         hi = np.maximum(hi, finite.max(axis=0) + delta)
-    lo = np.minimum(lo, run.goals.min(axis=0) - delta)
-    hi = np.maximum(hi, run.goals.max(axis=0) + delta)
+    lo = np.minimum(lo, run.goal_positions.min(axis=0) - delta)
+    hi = np.maximum(hi, run.goal_positions.max(axis=0) + delta)
     obstacles = run.scenario.obstacle_halfspaces() if run.scenario is not None else []
     span = np.maximum(hi - lo, 1e-6)
     far_lo, far_hi = lo - 10 * span - 10, hi + 10 * span + 10
@@ -597,7 +530,7 @@ def figure_dict(run_dir: str | Path, max_frames: int = MAX_FRAMES) -> dict[str, 
                 **group,
             )
         )
-        goal = run.goals[i]
+        goal = run.goal_positions[i]
         traces.append(
             scatter(
                 **axes([[_round(goal[a])] for a in range(d)]),
@@ -737,7 +670,7 @@ def figure_dict(run_dir: str | Path, max_frames: int = MAX_FRAMES) -> dict[str, 
             custom = [
                 i,
                 _round(np.linalg.norm(V[k, i])),
-                _round(np.linalg.norm(p - run.goals[i])),
+                _round(np.linalg.norm(p - run.goal_positions[i])),
                 _round(n_inf[i]),
                 int(id_inf[i]),
                 _round(n_two[i]),
@@ -909,10 +842,11 @@ def write_view(run_dir: str | Path, out: str | Path | None = None, *, open_brows
     """
     folder = Path(run_dir)
     target = Path(out) if out is not None else folder / "view.html"
+    run = load_run(folder)
     import plotly.io as pio
 
     page = pio.to_html(
-        figure_dict(folder),
+        run_figure_dict(run),
         validate=False,  # build_figure validates the same dictionary (in the tests)
         include_plotlyjs=True,
         include_mathjax=False,
@@ -924,7 +858,7 @@ def write_view(run_dir: str | Path, out: str | Path | None = None, *, open_brows
         config={"displaylogo": False, "responsive": True, "scrollZoom": True},
         post_script=_QUIET_INTERRUPTED_ANIMATION,
     )
-    title = f"swarmpc view · {html.escape(load_run_name(folder))}"
+    title = f"swarmpc view · {html.escape(run.name)}"
     # one full-window figure: no body margin (plotly's page sets html, body {height: 100%})
     style = "<style>html, body {margin: 0; padding: 0;}</style>"
     page = page.replace("<head>", f"<head><title>{title}</title>{style}", 1)
@@ -942,16 +876,3 @@ def write_view(run_dir: str | Path, out: str | Path | None = None, *, open_brows
         webbrowser.open(target.resolve().as_uri())
     return target
 
-
-def load_run_name(run_dir: str | Path) -> str:
-    """The scenario name of a run folder, cheaply (for the page title)."""
-    folder = Path(run_dir)
-    summary = folder / "summary.json"
-    if summary.is_file():
-        try:
-            data = json.loads(summary.read_text())
-            if isinstance(data, dict) and data.get("scenario"):
-                return str(data["scenario"])
-        except ValueError:
-            pass
-    return folder.name

@@ -19,7 +19,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from swarmpc.plots import RunData, animate, load_run, make_trajectory_figure
+from swarmpc.plots import animate, make_trajectory_figure
+from swarmpc.simulation.rundata import RunData, load_run
 
 if TYPE_CHECKING:
     from swarmpc.experiments.reproduce import ReproducePlan, RunRecord

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from swarmpc.config import Scenario, scenario_to_yaml
+from swarmpc.simulation.rundata import SUMMARY_FILE, read_summary
 
 SCENARIOS = ("paper-2d", "paper-3d")
 PAPER_DELTAS = (0.1, 0.3, 0.5)
@@ -247,7 +248,7 @@ def collect(out: Path, outcomes: Sequence[RunOutcome]) -> list[RunRecord]:
         if outcome.error is not None:
             continue
         folder = Path(outcome.folder)
-        summary = json.loads((folder / "summary.json").read_text())
+        summary = read_summary(folder / SUMMARY_FILE)  # a damaged file: one ValueError line naming it
         records.append(RunRecord(outcome.spec, folder.relative_to(out).as_posix(), summary))
     return records
 
