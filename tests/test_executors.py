@@ -94,3 +94,45 @@ class FailingAgent:
 
     def solve(self, request: Request) -> None:
         raise ValueError(f"agent {request.agent} refuses")
+
+
+def test_step_fields_travel_once_and_arrive_intact():
+    """What a remote host rebuilds equals what the coordinator sent, for any sequence of requests;
+    a step field that did not change since the agent last received it is not sent again."""
+    from dataclasses import dataclass
+
+    from hypothesis import given
+    from hypothesis import strategies as st
+
+    from swarmpc.solvers.executors import STEP_FIELDS, RequestCache, RequestDeduplicator
+
+    @dataclass(frozen=True)
+    class Request:
+        agent: int
+        rho: float
+        state: np.ndarray
+        goal: np.ndarray
+        delta: np.ndarray
+        guess: np.ndarray
+        neighbour_states: np.ndarray
+        neighbour_plans: tuple[np.ndarray, np.ndarray] | None
+
+    values = st.sampled_from([np.zeros(2), np.ones(2), np.arange(3.0)])
+
+    @given(st.lists(st.tuples(st.integers(0, 2), values, values,
+                              st.one_of(st.none(), st.tuples(values, values))), min_size=1, max_size=12))
+    def check(sequence):
+        outbox, inbox = RequestDeduplicator(), RequestCache()
+        for agent, state, guess, plans in sequence:
+            request = Request(agent, 1.0, state, np.ones(2), np.ones(2), guess, np.zeros((0, 2)), plans)
+            packed, kept = outbox.pack(request)
+            assert all(getattr(packed, f) is None for f in kept) and set(kept) <= set(STEP_FIELDS)
+            rebuilt = inbox.unpack((packed, kept))
+            for field in ("agent", "rho", *STEP_FIELDS):
+                a, b = getattr(rebuilt, field), getattr(request, field)
+                assert (a is None and b is None) or all(np.array_equal(x, y) for x, y in zip(
+                    a if isinstance(a, tuple) else (a,), b if isinstance(b, tuple) else (b,)))
+        again = outbox.pack(request)[1]
+        assert set(again) == set(STEP_FIELDS)  # an identical repeat sends no step field
+
+    check()

@@ -7,14 +7,20 @@ request order. The ADMM algorithm never changes with the executor; only where th
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import signal
 import socket
-from collections.abc import Callable, Sequence
+import sys
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
 from multiprocessing.connection import Connection
 from typing import Any, Protocol
+
+import numpy as np
 
 
 RAY_CONNECT_TIMEOUT_S = 10.0
@@ -173,21 +179,65 @@ class ProcessExecutor:
         self._connections, self._processes, self._home = [], [], {}
 
 
+STEP_FIELDS = ("state", "goal", "delta", "guess", "neighbour_states", "neighbour_plans")
+"""Request fields that do not change between the ADMM iterations of one MPC step: a remote
+executor sends each of them again only when it changed since it last went to that agent."""
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if a is None or b is None:
+        return a is b
+    return np.array_equal(a, b)
+
+
+class RequestDeduplicator:
+    """The sending side: strips the step fields an agent's host already holds."""
+
+    def __init__(self) -> None:
+        self._sent: dict[int, dict[str, Any]] = {}
+
+    def pack(self, request: Any) -> tuple[Any, tuple[str, ...]]:
+        sent = self._sent.setdefault(request.agent, {})
+        kept = tuple(f for f in STEP_FIELDS if f in sent and _same(sent[f], getattr(request, f)))
+        sent.update({f: getattr(request, f) for f in STEP_FIELDS})
+        return dataclasses.replace(request, **{f: None for f in kept}), kept
+
+
+class RequestCache:
+    """The receiving side: restores the stripped step fields from what the agent last received."""
+
+    def __init__(self) -> None:
+        self._held: dict[int, dict[str, Any]] = {}
+
+    def unpack(self, packed: tuple[Any, tuple[str, ...]]) -> Any:
+        request, kept = packed
+        held = self._held.setdefault(request.agent, {})
+        request = dataclasses.replace(request, **{f: held[f] for f in kept})
+        held.update({f: getattr(request, f) for f in STEP_FIELDS})
+        return request
+
+
 class _RayAgentHost:
     """A Ray actor hosting one or more agents (the remote counterpart of a worker process)."""
 
     def __init__(self, factory: AgentFactory, agent_ids: Sequence[int]) -> None:
         self._agents = {i: factory(i) for i in agent_ids}
+        self._cache = RequestCache()
 
     def solve(self, batch: Sequence[Any]) -> list[Any]:
-        return [self._agents[r.agent].solve(r) for r in batch]
+        requests = [self._cache.unpack(packed) for packed in batch]
+        return [self._agents[r.agent].solve(r) for r in requests]
 
 
 class RayExecutor:
     """Agents as Ray actors: a local Ray started on demand, or an existing cluster by address.
 
     ``actors`` bounds how many actors host the agents (agent ``i`` on actor ``i mod A``);
-    by default one actor per available CPU of the cluster.
+    by default one actor per available CPU of the cluster. Actors are spread over the cluster's
+    nodes; a request's step fields (:data:`STEP_FIELDS`) travel once per change, not once per
+    ADMM iteration.
     """
 
     def __init__(self, address: str | None = None, actors: int | None = None) -> None:
@@ -201,6 +251,7 @@ class RayExecutor:
         self._actors: list[Any] = []
         self._home: dict[int, int] = {}
         self._started_ray = False
+        self._outbox = RequestDeduplicator()
 
     def start(self, factory: AgentFactory, agent_ids: Sequence[int]) -> None:
         ray = self._ray
@@ -209,7 +260,8 @@ class RayExecutor:
         ids = list(agent_ids)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         count = max(1, min(self._actors_wanted or cpus, len(ids)))
-        host = ray.remote(num_cpus=0)(_RayAgentHost)
+        self._outbox = RequestDeduplicator()
+        host = ray.remote(num_cpus=0, scheduling_strategy="SPREAD")(_RayAgentHost)
         self._actors = [host.remote(factory, ids[a::count]) for a in range(count)]
         self._home = {i: a for a in range(count) for i in ids[a::count]}
 
@@ -218,9 +270,11 @@ class RayExecutor:
         way this can fail is an :class:`ExecutorError` of one line."""
         if self._address not in (None, "auto", "local"):
             check_reachable(self._address, RAY_CONNECT_TIMEOUT_S)
+            use_token_if_present()
         try:
-            self._ray.init(address=self._address, include_dashboard=False, log_to_driver=False,
-                           configure_logging=False)
+            with _quiet_stderr():  # Ray's core logs every retry on the process's own stderr
+                self._ray.init(address=self._address, include_dashboard=False, log_to_driver=False,
+                               configure_logging=False)
         except Exception as err:  # noqa: BLE001 - Ray raises many types for a failed connection
             where = f"--address: cannot join the Ray cluster at {self._address}" if self._address \
                 else "--executor: cannot start a local Ray"
@@ -232,7 +286,8 @@ class RayExecutor:
         batches: dict[int, list[Any]] = {}
         for request in requests:
             batches.setdefault(self._home[request.agent], []).append(request)
-        futures = {a: self._actors[a].solve.remote(batch) for a, batch in batches.items()}
+        futures = {a: self._actors[a].solve.remote([self._outbox.pack(r) for r in batch])
+                   for a, batch in batches.items()}
         answers: dict[int, Any] = {}
         for a, batch in batches.items():
             for request, result in zip(batch, self._ray.get(futures[a])):
@@ -246,6 +301,39 @@ class RayExecutor:
         if self._started_ray:
             self._ray.shutdown()
             self._started_ray = False
+
+
+def use_token_if_present() -> None:
+    """Authenticate like Ray's own command line: a stock ``ray start --head`` turns token
+    authentication on when a token exists (``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH`` or
+    ``~/.ray/auth_token``), but ``ray.init`` with an explicit address does not. With
+    ``RAY_AUTH_MODE`` unset and a token present, this process uses it (a cluster without
+    authentication ignores it)."""
+    if os.environ.get("RAY_AUTH_MODE") is not None:
+        return
+    token_file = Path(os.environ.get("RAY_AUTH_TOKEN_PATH") or Path.home() / ".ray" / "auth_token")
+    if os.environ.get("RAY_AUTH_TOKEN") or token_file.is_file():
+        os.environ["RAY_AUTH_MODE"] = "token"
+        try:  # Ray reads its configuration once; refresh it as Ray's own switch to token mode does
+            from ray._raylet import Config
+
+            Config.initialize("")
+        except (ImportError, AttributeError):  # pragma: no cover - another Ray version
+            pass
+
+
+@contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """File descriptor 2 sent to /dev/null for the duration (C++ logging bypasses sys.stderr)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def check_reachable(address: str, timeout_s: float) -> None:
