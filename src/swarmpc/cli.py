@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from enum import Enum
@@ -16,6 +17,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Annotated, Any, NoReturn
 
+import numpy as np
 import typer
 
 from swarmpc._launch import caused_by_interrupt
@@ -266,36 +268,93 @@ def _run_and_write(
         typer.echo(result_paragraph(result.summary, folder))
 
 
+PROGRESS_LINE_EVERY_S = 5.0
+"""When stderr is not a terminal, a progress line at most this often."""
+
+
+class RunProgress:
+    """How far a run is: steps, agents at their goals, and an estimate of the time left (from the
+    larger of the step fraction and the fraction of the start-to-goal distance covered)."""
+
+    def __init__(self, scn: Scenario) -> None:
+        self.scn = scn
+        self.goals = scn.goal_states()[:, : scn.dim]
+        self.initial = float(np.linalg.norm(scn.start_states()[:, : scn.dim] - self.goals, axis=1).sum())
+        self.started = time.monotonic()
+
+    def describe(self, step: int, states: Any) -> tuple[str, str]:
+        """('k agents at goal', 'ETA ~s') for the states after ``step`` steps."""
+        gaps = np.linalg.norm(states[:, : self.scn.dim] - self.goals, axis=1)
+        at_goal = int(np.sum(gaps <= self.scn.stop.goal_tolerance))
+        covered = 1.0 - float(gaps.sum()) / self.initial if self.initial > 0 else 1.0
+        fraction = max(step / self.scn.stop.max_steps, min(max(covered, 0.0), 1.0))
+        elapsed = time.monotonic() - self.started
+        eta = f"ETA ~{elapsed * (1 - fraction) / fraction:.0f} s" if fraction > 0.02 else "ETA -"
+        return f"{at_goal}/{self.scn.num_agents} at goal", eta
+
+
 def _simulate_with_progress(
     scn: Scenario, quiet: bool, stop: Any, executor: _WorkersIgnoreCtrlC | None
 ) -> Any:
-    """The closed loop, with a progress bar on a terminal; executor failures become one line."""
+    """The closed loop with a progress bar and an ETA on a terminal, or a line every few seconds
+    on stderr otherwise; executor failures become one line."""
     from dataclasses import replace
 
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from swarmpc.simulation.loop import simulate
     from swarmpc.solvers.executors import ExecutorError
 
     console = Console(stderr=True)
     try:
-        if not quiet and console.is_terminal:
-            with Progress(
-                TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("step {task.completed}"),
-                TimeElapsedColumn(), console=console, transient=True,
-            ) as bar:
-                task = bar.add_task(f"{scn.name} ({scn.solver.method})", total=scn.stop.max_steps)
-                result = simulate(scn, progress=lambda k, _n, _s: bar.update(task, completed=k),
-                                  stop_flag=stop, executor=executor)
-        else:
+        if quiet:
             result = simulate(scn, stop_flag=stop, executor=executor)
+        elif console.is_terminal:
+            result = _with_bar(scn, stop, executor, console)
+        else:
+            result = simulate(scn, progress=_progress_lines(scn), stop_flag=stop, executor=executor)
     except ExecutorError as err:
         fail(str(err).splitlines()[0])
     if scn.solver.method == "admm":
         name = executor.name if executor else "serial"
         result = replace(result, summary={**result.summary, "executor": name})
     return result
+
+
+def _with_bar(scn: Scenario, stop: Any, executor: Any, console: Any) -> Any:
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from swarmpc.simulation.loop import simulate
+
+    progress = RunProgress(scn)
+    with Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("step {task.completed}"),
+        TextColumn("{task.fields[goals]}"), TimeElapsedColumn(), TextColumn("{task.fields[eta]}"),
+        console=console, transient=True,
+    ) as bar:
+        task = bar.add_task(f"{scn.name} ({scn.solver.method})", total=scn.stop.max_steps, goals="", eta="")
+
+        def update(k: int, _n: int, states: Any) -> None:
+            goals, eta = progress.describe(k, states)
+            bar.update(task, completed=k, goals=goals, eta=eta)
+
+        return simulate(scn, progress=update, stop_flag=stop, executor=executor)
+
+
+def _progress_lines(scn: Scenario, every_s: float = PROGRESS_LINE_EVERY_S) -> Any:
+    """A progress callback that writes one line to stderr at most every ``every_s`` seconds."""
+    progress = RunProgress(scn)
+    last = [progress.started]
+
+    def report(k: int, n: int, states: Any) -> None:
+        now = time.monotonic()
+        if now - last[0] < every_s:
+            return
+        last[0] = now
+        goals, eta = progress.describe(k, states)
+        typer.echo(f"swarmpc: {scn.name}: step {k}/{n}, {goals}, {now - progress.started:.0f} s, {eta}", err=True)
+
+    return report
 
 
 def _write_with_figure(result: Any, target: RunFolderTarget) -> Path:

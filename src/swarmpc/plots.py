@@ -22,6 +22,7 @@ from typing import Any, Literal
 import matplotlib
 import numpy as np
 from matplotlib import animation, colormaps
+from matplotlib.colors import to_rgba
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -31,6 +32,7 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
+from swarmpc import palette
 from swarmpc.config import Scenario
 from swarmpc.model.geometry import count_collisions, inf_separation_ratio
 from swarmpc.simulation.rundata import AdmmResiduals as AdmmResiduals
@@ -58,24 +60,8 @@ class AnimationWriterError(RuntimeError):
 
 # --------------------------------------------------------------------------------- geometry
 def agent_colors(m: int) -> list[tuple[float, float, float, float]]:
-    """One RGBA colour per agent: ``tab10`` for up to 10 agents, ``turbo`` samples beyond.
-
-    Parameters
-    ----------
-    m : int
-        Number of agents.
-
-    Returns
-    -------
-    list of RGBA tuples
-        The same agent gets the same colour in every figure of this module.
-    """
-    if m <= 0:
-        return []
-    if m <= 10:
-        return [tuple(float(c) for c in colormaps["tab10"](i)) for i in range(m)]
-    samples = colormaps["turbo"](np.linspace(0.05, 0.95, m))
-    return [tuple(float(c) for c in row) for row in samples]
+    """One RGBA colour per agent, from :func:`swarmpc.palette.agent_colors` (the viewer's too)."""
+    return [to_rgba(color) for color in palette.agent_colors(m)]
 
 
 def polytope_vertices(
@@ -507,10 +493,10 @@ def make_convergence_figure(run: RunData, steps: Sequence[int] | None = None) ->
     ax_p = fig.add_subplot(grid[0])
     ax_d = fig.add_subplot(grid[1], sharey=ax_p)
     ax_it = fig.add_subplot(grid[2])
-    palette = colormaps["viridis"](np.linspace(0.0, 0.8, len(chosen)))
+    shades = colormaps["viridis"](np.linspace(0.0, 0.8, len(chosen)))
     tol = run.summary.get("admm_tol")
     for ax, values, label in ((ax_p, admm.primal, "primal"), (ax_d, admm.dual, "dual")):
-        for step, color in zip(chosen, palette):
+        for step, color in zip(chosen, shades):
             row = np.where(values[step] > 0, values[step], np.nan)
             iters = np.arange(1, row.size + 1)
             keep = np.isfinite(row)
@@ -527,7 +513,7 @@ def make_convergence_figure(run: RunData, steps: Sequence[int] | None = None) ->
     ax_p.legend(fontsize=8)
     mpc_steps = np.arange(total)
     ax_it.bar(mpc_steps, admm.iterations, width=1.0, color="0.7")
-    for step, color in zip(chosen, palette):
+    for step, color in zip(chosen, shades):
         ax_it.bar([step], [admm.iterations[step]], width=1.0, color=color)
     ax_it.set_xlabel("MPC step")
     ax_it.set_ylabel("ADMM iterations")
@@ -574,12 +560,15 @@ def _planar_movers(
     boxes = [ax.add_patch(_box_patch(pos[0, i], half, c, 0.3, zorder=2)) for i, c in enumerate(colors)]
     trails = [ax.plot([], [], color=c, linewidth=1.5, zorder=3)[0] for c in colors]
     dots = [ax.plot([], [], "o", color=c, markeredgecolor="k", markersize=5, zorder=5)[0] for c in colors]
+    numbers = [ax.text(*pos[0, i], f" {i}", color=c, fontsize=8, fontweight="bold", zorder=6)
+               for i, c in enumerate(colors)]
 
     def update(k: int, first: int) -> None:
         for i in range(len(colors)):
             boxes[i].set_xy(tuple(pos[k, i] - half))
             trails[i].set_data(pos[first : k + 1, i, 0], pos[first : k + 1, i, 1])
             dots[i].set_data([pos[k, i, 0]], [pos[k, i, 1]])
+            numbers[i].set_position(tuple(pos[k, i]))
 
     return update
 
@@ -604,11 +593,13 @@ def _spatial_movers(ax: Any, run: RunData, colors: list[Any]) -> Callable[[int, 
         colors=np.repeat(np.asarray(colors), 12, axis=0), linewidths=0.7, alpha=0.6,
     )
     ax.add_collection3d(cubes)
+    numbers = [ax.text(*pos[0, i], f" {i}", color=c, fontsize=8, fontweight="bold") for i, c in enumerate(colors)]
 
     def update(k: int, first: int) -> None:
         for i in range(len(colors)):
             trails[i].set_data_3d(pos[first : k + 1, i, 0], pos[first : k + 1, i, 1], pos[first : k + 1, i, 2])
             dots[i].set_data_3d([pos[k, i, 0]], [pos[k, i, 1]], [pos[k, i, 2]])
+            numbers[i].set_position_3d(tuple(pos[k, i]))
         cubes.set_segments(np.concatenate([_cube_edges(pos[k, i], run.delta) for i in range(len(colors))]))
 
     return update

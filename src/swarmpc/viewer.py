@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from swarmpc.palette import agent_colors
 from swarmpc.simulation.rundata import RunData
 from swarmpc.simulation.rundata import load_run as load_run_data
 
@@ -282,13 +283,6 @@ def _trail_indices(frames_k: np.ndarray, k_pos: int, cap: int = TRAIL_POINTS) ->
     return np.concatenate([older[pick], so_far[len(so_far) - recent :]])
 
 
-def _palette(m: int) -> list[str]:
-    from plotly.colors import qualitative
-
-    base = list(qualitative.Plotly) + [c for c in qualitative.Dark24 if c not in qualitative.Plotly]
-    return [base[i % len(base)] for i in range(m)]
-
-
 def _rgba(color: str, alpha: float) -> str:
     color = color.strip()
     if color.startswith("#") and len(color) == 7:
@@ -385,7 +379,7 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
     is3d = d == 3
     P, V, t, delta = run.positions, run.velocities, run.t, run.delta
     steps = P.shape[0]
-    colors = _palette(m)
+    colors = agent_colors(m)
     closest = closest_approach(P, t, delta)
     frames_k = frame_indices(steps, max_frames, keep=closest.step if closest else None)
 
