@@ -91,8 +91,8 @@ def test_unreadable_files(content, needle, tmp_path):
 
 @pytest.mark.parametrize("kind,error", [
     ("invalid UTF-8", "UnicodeDecodeError"),
-    ("directory.yaml", "IsADirectoryError"),
-    ("directory", "IsADirectoryError"),  # no suffix: found because it exists
+    ("directory.yaml", "a directory, not a regular file"),  # refused before it is opened
+    ("directory", "a directory, not a regular file"),  # no suffix: found because it exists
 ])
 def test_existing_but_unreadable(kind, error, tmp_path):
     """Files that exist but cannot be read (root ignores chmod 000, so bytes and folders instead)."""

@@ -20,8 +20,8 @@ from hypothesis import strategies as st
 
 from conftest import run_cli
 from swarmpc.cli import app, main
-from swarmpc.config import Scenario, ScenarioError, scenario_from_dict
-from swarmpc.scenarios import BUILTINS
+from swarmpc.config import MAX_SEED, Scenario, ScenarioError, scenario_from_dict
+from swarmpc.scenarios import BUILTINS, builtin_parameters
 
 PREFIX = "swarmpc: error: "
 FIELDS = set(Scenario.model_fields)
@@ -117,12 +117,21 @@ FIELD_OF = {"--seed": ("seed",), "--agents": ("agents",), "--dim": ("dim",), "--
             "--max-steps": ("stop.max_steps",), "--method": ("solver.method",), "--collision": ("collision",),
             "--initial-guess": ("solver.initial_guess",), "--plane-margin": ("solver.plane_margin",)}
 # valid ranges, for the options whose range the oracle knows
-IN_RANGE = {"--seed": lambda v: v >= 0, "--agents": lambda v: v >= 1, "--dim": lambda v: v in (2, 3),
+IN_RANGE = {"--seed": lambda v: 0 <= v <= MAX_SEED, "--agents": lambda v: v >= 1, "--dim": lambda v: v in (2, 3),
             "--admm-max-iter": lambda v: v >= 1, "--max-steps": lambda v: v >= 1,
             "--delta": lambda v: v > 0, "--rho": lambda v: v > 0, "--admm-tol": lambda v: v > 0,
             "--plane-margin": lambda v: v >= 0}
-# added when not fuzzed, so that valid command lines finish in well under a second
+# added when not fuzzed (and taken by the scenario), so that valid command lines finish in well under a second
 FAST = {"--max-steps": "1", "--agents": "2", "--admm-max-iter": "10"}
+# options that shape a built-in's generator: an error with a built-in whose generator does not take them
+GENERATOR_OPTIONS = {"--agents", "--dim"}
+
+
+def takes(scenario: str, option: str) -> bool:
+    """Whether ``option`` may be given with ``scenario``: the generator options only with the
+    built-ins whose generator takes them (``paper-2d --agents 8`` would silently run 4 agents)."""
+    return (option not in GENERATOR_OPTIONS or scenario not in BUILTINS
+            or option.removeprefix("--") in builtin_parameters(scenario))
 
 # text without digits: never a number, except the spellings of nan and inf
 letters = st.text(st.characters(categories=["L", "P", "Zs"], exclude_characters="\x00"), max_size=6)
@@ -200,11 +209,12 @@ def test_run_arguments_run_or_fail_with_one_line_naming_the_option(command):
     with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp):  # a stray path lands here
         out = Path(tmp) / "out"
         args = [scenario, *(x for item in values.items() for x in item)]
-        args += [x for option, value in FAST.items() if option not in values for x in (option, value)]
+        args += [x for option, value in FAST.items() if option not in values and takes(scenario, option)
+                 for x in (option, value)]
         code, stderr = run_in_process("run", *args, "--out", str(out), "--quiet")
         assert code in (0, 2), (code, stderr)
         assert "Traceback" not in stderr
-        bad = [option for option, value in values.items() if invalid(option, value)]
+        bad = [option for option, value in values.items() if invalid(option, value) or not takes(scenario, option)]
         if scenario not in BUILTINS:
             bad.append("SCENARIO")
         if bad:

@@ -3,40 +3,160 @@
 Everything that runs is described by a :class:`Scenario`. It is validated as a whole before
 anything is built, so a bad file fails early with one line that names the field
 (:class:`ScenarioError`), never with a traceback from deep inside a solver.
+
+Input is bounded before any work: a scenario file is a regular file of at most
+:data:`MAX_FILE_BYTES`, its YAML at most :data:`MAX_YAML_DEPTH` levels deep and
+:data:`MAX_YAML_NODES` values with aliases expanded, without duplicate keys; numbers are numbers
+(not booleans, not text), within :data:`MAX_MAGNITUDE`; and the run's size (agents, horizon,
+steps, the arrays they need) is capped by the ``MAX_*`` constants below.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
+import os
 import re
+import stat
+import types
+import typing
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_core import PydanticSerializationError
 
 Number = float
 Matrix = list[list[float]]
 ScalarOrMatrix = float | Matrix
 ScalarOrVector = float | list[float]
 
+MAX_FILE_BYTES = 512 * 1024
+"""Largest scenario file read (512 KiB): a 1024-agent 3D scenario written out in full is ~0.2 MiB,
+and the pure-Python YAML parser refuses the worst file of this size in a few seconds."""
+MAX_YAML_DEPTH = 32
+"""Deepest nesting of YAML collections accepted (a scenario needs 5: agents, item, start, ...)."""
+MAX_YAML_NODES = 500_000
+"""Most YAML values (scalars, lists, mappings) accepted, every alias counted as often as it is
+used: an alias bomb expands to billions from a few hundred bytes."""
+MAX_MAGNITUDE = 1e6
+"""Largest magnitude of any real-valued field (positions, sizes, weights, tolerances, ...), so that
+squares and products in the costs and norms cannot overflow."""
+MAX_AGENTS = 1024
+"""Most agents in a scenario."""
+MAX_HORIZON = 200
+"""Longest MPC horizon N, in steps."""
+MAX_STEPS = 100_000
+"""Most MPC steps of a run (``stop.max_steps``)."""
+MAX_ADMM_ITERATIONS = 100_000
+"""Highest ADMM iteration cap per MPC step (``solver.max_iter``)."""
+MAX_OBSTACLES = 256
+"""Most obstacles in a scenario."""
+MAX_FACETS = 64
+"""Most rows (facets) of one polytope obstacle."""
+MAX_SEED = 2**64 - 1
+"""Largest seed: the random generators draw on 64-bit words of it."""
+MAX_RUN_BYTES = 2 * 1024**3
+"""Bound on the estimated memory of a run's arrays (2 GiB), see :func:`estimated_run_bytes`."""
+MAX_NAME_CHARS = 100
+"""Longest scenario name (it names the output folder)."""
+MAX_MESSAGE_CHARS = 500
+"""Longest error message; a longer one (quoting a huge value) is cut."""
+
+_NAME = re.compile(rf"[A-Za-z0-9_][A-Za-z0-9._+-]{{0,{MAX_NAME_CHARS - 1}}}")
+_PLAIN_KEY = re.compile(r"[A-Za-z_][\w-]*")
+_LINE_BREAKING = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+_MATRIX_DEPTH = 2  # lists of lists: the deepest a numeric field nests
+
+
+def short_repr(value: Any, limit: int = 40) -> str:
+    """``repr(value)`` cut to ``limit`` characters, safe for any value (even an int too long to print)."""
+    try:
+        text = repr(value)
+    except ValueError:  # an int beyond Python's digit limit for str()
+        return "<a number too long to print>"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _one_line(message: str) -> str:
+    """``message`` with every character that could break or forge a line escaped, cut to
+    :data:`MAX_MESSAGE_CHARS`."""
+    text = _LINE_BREAKING.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), message)
+    return text if len(text) <= MAX_MESSAGE_CHARS else text[: MAX_MESSAGE_CHARS - 3] + "..."
+
 
 class ScenarioError(ValueError):
-    """A scenario that cannot run; the message is one line naming the offending field."""
+    """A scenario that cannot run; the message is one line naming the offending field.
+
+    Line breaks and control characters in the message (from a key or a path) are escaped, so
+    the message is always exactly one line and cannot imitate a second one.
+    """
+
+    def __init__(self, message: object = "") -> None:
+        super().__init__(_one_line(str(message)))
 
 
-def _check_finite(value: Any, path: str = "") -> None:
-    """Raise ValueError when any number nested in ``value`` is NaN or infinite."""
-    if isinstance(value, bool) or value is None:
-        return
-    if isinstance(value, (int, float)):
-        if not math.isfinite(value):
-            raise ValueError(f"must be finite, got {value}")
-        return
+# ------------------------------------------------------------------ strictly typed numbers
+def _annotation_kind(annotation: Any) -> type | None:
+    """``float``, ``int`` or ``bool`` when that is the only scalar an annotation admits (alone, in
+    lists, or with None); None when it admits anything else (text, choices, sections)."""
+    kinds: set[Any] = set()
+    pending = [annotation]
+    while pending:
+        item = pending.pop()
+        if typing.get_origin(item) in (list, typing.Union, types.UnionType):
+            pending.extend(typing.get_args(item))
+        elif item is not type(None):
+            kinds.add(item if item in (float, int, bool) else None)
+    return kinds.pop() if len(kinds) == 1 else None
+
+
+def _type_name(value: Any) -> str:
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, str):
+        return "text"
+    return "a number" if isinstance(value, numbers.Real) else type(value).__name__
+
+
+def _leaf_problem(value: Any, kind: type) -> str | None:
+    """What is wrong with one scalar of a field of ``kind``; None when nothing (or when the type
+    is so far off that pydantic's own message says it better)."""
+    if kind is bool:
+        return None if isinstance(value, bool) else f"expected true or false, got {_type_name(value)}"
+    if isinstance(value, (bool, str)):
+        return f"expected {'an integer' if kind is int else 'a number'}, got {_type_name(value)}"
+    if isinstance(value, numbers.Integral):
+        if kind is float and abs(value) > MAX_MAGNITUDE:
+            return f"magnitude must be <= {MAX_MAGNITUDE:g}"
+        return None
+    if not isinstance(value, numbers.Real):
+        return None
+    number = float(value)
+    if not math.isfinite(number):
+        return f"must be finite, got {number}"
+    if kind is float and abs(number) > MAX_MAGNITUDE:
+        return f"magnitude must be <= {MAX_MAGNITUDE:g}, got {number:.3g}"
+    return None
+
+
+def _first_problem(value: Any, kind: type, path: str, depth: int = 0) -> str | None:
+    """The first scalar of ``value`` (a scalar, a list or a matrix) that is not a proper ``kind``,
+    as ``path[i][j]: problem``; deeper lists are left to the schema, which rejects them."""
     if isinstance(value, (list, tuple)):
-        for item in value:
-            _check_finite(item, path)
+        if depth >= _MATRIX_DEPTH:
+            return None
+        for index, item in enumerate(value):
+            problem = _first_problem(item, kind, f"{path}[{index}]", depth + 1)
+            if problem is not None:
+                return problem
+        return None
+    if value is None:
+        return None
+    problem = _leaf_problem(value, kind)
+    return None if problem is None else f"{path}: {problem}"
 
 
 class _Frozen(BaseModel):
@@ -44,16 +164,18 @@ class _Frozen(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _reject_non_finite(cls, data: Any) -> Any:
+    def _strict_scalars(cls, data: Any) -> Any:
+        """Numbers must be numbers and booleans booleans, before pydantic's lax mode would turn
+        ``true`` or ``"1.5"`` into a number: every numeric scalar is finite and, where a real is
+        expected, within :data:`MAX_MAGNITUDE` (ints stay welcome where reals are expected)."""
         if isinstance(data, dict):
             for key, value in data.items():
-                try:
-                    _check_finite(value)
-                except ValueError as err:
-                    raise ValueError(f"{key}: {err}") from None
+                field = cls.model_fields.get(key) if isinstance(key, str) else None
+                kind = None if field is None else _annotation_kind(field.annotation)
+                problem = None if kind is None else _first_problem(value, kind, key)
+                if problem is not None:
+                    raise ValueError(problem)
         return data
-
-
 class Weights(_Frozen):
     """Quadratic cost weights: scalars (times identity) or full matrices."""
 
@@ -112,20 +234,25 @@ class BoxSpec(_Frozen):
 
 
 class PolytopeSpec(_Frozen):
-    G: Matrix
-    g: list[float]
+    G: Matrix = Field(
+        description=f"Facet normals, one row of `dim` values per facet (at most {MAX_FACETS} rows); no zero row."
+    )
+    g: list[float] = Field(description="Facet offsets, one per row of G.")
 
     @model_validator(mode="after")
     def _shapes(self) -> PolytopeSpec:
         if len(self.G) == 0:
-            raise ValueError("G has no rows")
+            raise ValueError("G: has no rows")
+        if len(self.G) > MAX_FACETS:
+            raise ValueError(f"G: at most {MAX_FACETS} rows, got {len(self.G)}")
         if len(self.G) != len(self.g):
-            raise ValueError(f"G has {len(self.G)} rows but g has {len(self.g)} entries")
-        widths = {len(row) for row in self.G}
-        if len(widths) != 1:
-            raise ValueError("rows of G differ in length")
-        if any(np.linalg.norm(row) == 0 for row in self.G):
-            raise ValueError("G has a zero row")
+            raise ValueError(f"g: has {len(self.g)} entries but G has {len(self.G)} rows")
+        if len({len(row) for row in self.G}) != 1:
+            raise ValueError("G: rows differ in length")
+        for index, row in enumerate(self.G):
+            norm = float(np.linalg.norm(row))
+            if not (math.isfinite(norm) and norm > 0):
+                raise ValueError(f"G[{index}]: row norm must be finite and > 0, got {norm:.3g}")
         return self
 
 
@@ -164,7 +291,7 @@ class SolverConfig(_Frozen):
 
     method: Literal["admm", "centralized"] = "admm"
     rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
-    max_iter: int = Field(default=100, ge=1, description="ADMM iteration cap per MPC step")
+    max_iter: int = Field(default=100, ge=1, le=MAX_ADMM_ITERATIONS, description="ADMM iteration cap per MPC step")
     tol: float = Field(default=1e-3, gt=0, description="ADMM primal/dual residual tolerance [m] (the random and spread built-ins use 0.005)")
     adaptive_rho: bool = Field(default=False, description="residual balancing of rho")
     coupling_margin: float | None = Field(
@@ -207,7 +334,11 @@ class StopConfig(_Frozen):
 
     goal_tolerance: float = Field(default=0.05, gt=0, description="position tolerance [m]")
     speed_tolerance: float = Field(default=0.1, gt=0, description="speed tolerance at the goal")
-    max_steps: int = Field(default=400, ge=1)
+    max_steps: int = Field(
+        default=400, ge=1, le=MAX_STEPS,
+        description="MPC steps at most; the run stops earlier when every agent is at its goal. With the "
+        f"agents, also bounded by the memory of the run's arrays (at most {MAX_RUN_BYTES // 1024**3} GiB)",
+    )
 
 
 class Disturbance(_Frozen):
@@ -247,27 +378,52 @@ class Disturbance(_Frozen):
 class Scenario(_Frozen):
     """A complete, validated multi-agent scenario (design.md section 8)."""
 
-    name: str = "unnamed"
+    name: str = Field(
+        default="unnamed",
+        description="Scenario name: the default output folder is `results/<name>`; echoed in `summary.json`. "
+        f"1 to {MAX_NAME_CHARS} characters from `A-Z a-z 0-9 . _ + -`, the first a letter, digit or `_`.",
+    )
     dim: int = 2
     dt: float = 0.1
-    horizon: int = 10
+    horizon: int = Field(default=10, ge=2, le=MAX_HORIZON, description="MPC horizon N in steps.")
     delta: ScalarOrVector = 0.3
     collision: Literal["hard", "soft"] = "hard"
     d_min: float = 0.05
     kappa: float = 1000.0
     discretization: Literal["euler", "zoh"] = "euler"
-    seed: int = Field(default=0, ge=0)
+    seed: int = Field(
+        default=0, ge=0, le=MAX_SEED,
+        description="Seed of the RRT planner, of the disturbance noise and of the `random` built-in scenario.",
+    )
     weights: Weights = Weights()
     workspace: Workspace | None = None
     limits: Limits = Limits()
-    obstacles: list[Obstacle] = []
-    agents: list[Agent]
+    obstacles: list[Obstacle] = Field(
+        default=[],
+        description=f"Static convex obstacles (at most {MAX_OBSTACLES}). Each entry has exactly one of `box` or "
+        "`polytope`; an agent's position (its centre, not its Δ box) keeps d_min from it. Starts and goals "
+        "must lie outside.",
+    )
+    agents: list[Agent] = Field(
+        description=f"The agents (1 to {MAX_AGENTS}). Starts (and goals) must be pairwise outside each other's "
+        "Δ box.",
+    )
     solver: SolverConfig = SolverConfig()
     stop: StopConfig = StopConfig()
     disturbance: Disturbance = Field(
         default=Disturbance(),
         description="process/measurement noise (seeded by `seed`) and planner tightening; default off",
     )
+
+    @field_validator("name")
+    @classmethod
+    def _safe_name(cls, value: str) -> str:
+        if not _NAME.fullmatch(value):
+            raise ValueError(
+                f"must be 1 to {MAX_NAME_CHARS} of A-Z a-z 0-9 . _ + - (not first . + -; it names the "
+                f"output folder), got {short_repr(value)}"
+            )
+        return value
 
     @field_validator("dim")
     @classmethod
@@ -283,19 +439,12 @@ class Scenario(_Frozen):
             raise ValueError(f"must be > 0, got {value}")
         return value
 
-    @field_validator("horizon")
-    @classmethod
-    def _horizon(cls, value: int) -> int:
-        if value < 2:
-            raise ValueError(f"must be >= 2, got {value}")
-        return value
-
     @field_validator("delta")
     @classmethod
     def _delta(cls, value: ScalarOrVector) -> ScalarOrVector:
         values = [value] if isinstance(value, (int, float)) else value
         if any(v <= 0 for v in values):
-            raise ValueError(f"must be > 0, got {value}")
+            raise ValueError(f"must be > 0, got {short_repr(value)}")
         return value
 
     @field_validator("agents")
@@ -303,13 +452,36 @@ class Scenario(_Frozen):
     def _agents(cls, value: list[Agent]) -> list[Agent]:
         if not value:
             raise ValueError("needs at least one agent")
+        if len(value) > MAX_AGENTS:
+            raise ValueError(f"at most {MAX_AGENTS} agents, got {len(value)}")
+        return value
+
+    @field_validator("obstacles")
+    @classmethod
+    def _obstacles(cls, value: list[Obstacle]) -> list[Obstacle]:
+        if len(value) > MAX_OBSTACLES:
+            raise ValueError(f"at most {MAX_OBSTACLES} obstacles, got {len(value)}")
         return value
 
     @model_validator(mode="after")
     def _consistent(self) -> Scenario:
-        for error in _consistency_errors(self):
+        for error in [*_size_errors(self), *_consistency_errors(self)]:
             raise ValueError(error)
         return self
+
+    def revalidated(self) -> Scenario:
+        """A freshly validated copy of this scenario; raises :class:`ScenarioError` when invalid.
+
+        The model is frozen, but its lists are Python lists that can still be changed in place
+        (``scn.agents.append(...)``, ``scn.agents[0].start[0] = 1e9``) without any validator
+        seeing it. Code about to run a scenario calls this to work on content that was checked.
+        An unchanged scenario gives an equal copy.
+        """
+        try:
+            data = self.model_dump(warnings=False)
+        except PydanticSerializationError:
+            raise ScenarioError("scenario: holds a value that is not scenario data (changed in place?)") from None
+        return scenario_from_dict(data)
 
     # ----------------------------------------------------------------- derived views
     @property
@@ -371,8 +543,52 @@ def _full_state(vector: list[float], dim: int) -> np.ndarray:
     return values
 
 
-def _consistency_errors(scn: Scenario) -> list[str]:
-    """Cross-field checks, each a message that starts with the field path."""
+def estimated_run_bytes(scn: Scenario) -> tuple[int, int]:
+    """Rough memory of a run's arrays, in bytes: (what the run records, what the solver holds).
+
+    The record is (max_steps + 1) steps x M agents of the state (2d), input (d) and disturbance
+    (2d) plus four per-agent solver figures; the solver, horizon x M agents of a state, an input
+    and one dual per obstacle facet. It is a lower bound (CasADi's graphs come on top), so a
+    scenario above :data:`MAX_RUN_BYTES` is refused before it exhausts the machine half way.
+    """
+    m, d = scn.num_agents, scn.dim
+    facets = sum(2 * d if ob.polytope is None else len(ob.polytope.G) for ob in scn.obstacles)
+    record = (scn.stop.max_steps + 1) * m * (5 * d + 4)
+    solver = scn.horizon * m * (3 * d + facets)
+    return 8 * record, 8 * solver
+
+
+def _size_errors(scn: Scenario) -> list[str]:
+    """The run's estimated memory above :data:`MAX_RUN_BYTES`, naming its larger contributor."""
+    record, solver = estimated_run_bytes(scn)
+    if record + solver <= MAX_RUN_BYTES:
+        return []
+    total = (record + solver) / 1024**3
+    bound = f"above the bound of {MAX_RUN_BYTES / 1024**3:g} GiB"
+    if record >= solver:
+        return [f"stop.max_steps: {scn.stop.max_steps} steps of {scn.num_agents} agents need about "
+                f"{total:.1f} GiB of arrays, {bound}; lower stop.max_steps or the number of agents"]
+    return [f"horizon: a horizon of {scn.horizon} for {scn.num_agents} agents and {len(scn.obstacles)} "
+            f"obstacles needs about {total:.1f} GiB of arrays, {bound}"]
+
+
+def _weight_error(which: str, value: ScalarOrMatrix, size: int) -> str | None:
+    """What is wrong with the weight ``which`` for a ``size`` x ``size`` matrix, if anything."""
+    if not isinstance(value, list):
+        if value < 0:
+            return f"weights.{which}: must be >= 0"
+        return "weights.R: must be > 0" if which == "R" and value <= 0 else None
+    if len(value) != size or any(not isinstance(row, list) or len(row) != size for row in value):
+        return f"weights.{which}: expected a scalar or a {size}x{size} matrix"
+    matrix = np.asarray(value, float)
+    if not np.allclose(matrix, matrix.T) or np.min(np.linalg.eigvalsh(matrix)) < 0:
+        return f"weights.{which}: must be symmetric positive semidefinite"
+    return None
+
+
+def _shape_errors(scn: Scenario) -> list[str]:
+    """Lengths that must match ``dim`` and the scalar rules of single fields, each a message
+    that starts with the field path."""
     d = scn.dim
     errors: list[str] = []
     if not isinstance(scn.delta, (int, float)) and len(scn.delta) != d:
@@ -385,18 +601,9 @@ def _consistency_errors(scn: Scenario) -> list[str]:
     if scn.d_min < 0:
         errors.append("d_min: must be >= 0")
     for which in ("Q", "R", "Qf"):
-        value = getattr(scn.weights, which)
-        size = d if which == "R" else 2 * d
-        if isinstance(value, list):
-            matrix = np.asarray(value, float) if all(isinstance(r, list) for r in value) else None
-            if matrix is None or matrix.shape != (size, size):
-                errors.append(f"weights.{which}: expected a scalar or a {size}x{size} matrix")
-            elif not np.allclose(matrix, matrix.T) or np.min(np.linalg.eigvalsh(matrix)) < 0:
-                errors.append(f"weights.{which}: must be symmetric positive semidefinite")
-        elif value < 0:
-            errors.append(f"weights.{which}: must be >= 0")
-    if isinstance(scn.weights.R, (int, float)) and scn.weights.R <= 0:
-        errors.append("weights.R: must be > 0")
+        error = _weight_error(which, getattr(scn.weights, which), d if which == "R" else 2 * d)
+        if error is not None:
+            errors.append(error)
     if scn.workspace is not None and len(scn.workspace.lower) != d:
         errors.append(f"workspace.lower: expected {d} values for dim {d}, got {len(scn.workspace.lower)}")
     if scn.limits.accel is not None and isinstance(scn.limits.accel, list) and len(scn.limits.accel) != d:
@@ -416,46 +623,76 @@ def _consistency_errors(scn: Scenario) -> list[str]:
                     f"agents[{n}].{field}: expected {d} (position) or {2 * d} (state) values "
                     f"for dim {d}, got {size}"
                 )
+    return errors
+
+
+def _consistency_errors(scn: Scenario) -> list[str]:
+    """Cross-field checks, each a message that starts with the field path (the first only)."""
+    errors = _shape_errors(scn)
     if errors:
         return errors[:1]
-    delta = scn.delta_vector
     for field in ("start", "goal"):
-        positions = np.array([_full_state(getattr(a, field), d)[:d] for a in scn.agents])
-        for i in range(len(positions) - 1):  # one row of pairs at a time: O(M) numpy calls
-            gaps = np.abs(positions[i + 1 :] - positions[i])
-            inside = np.flatnonzero(np.all(gaps < delta, axis=1))
-            if inside.size:
-                j = i + 1 + int(inside[0])
-                return [
-                    f"agents[{j}].{field}: within delta of agents[{i}].{field} "
-                    f"(inf-norm gap {np.max(gaps[inside[0]]):.3g} < delta {scn.delta})"
-                ]
-        for n, position in enumerate(positions):
-            if scn.workspace is not None:
-                lo = np.asarray(scn.workspace.lower)
-                hi = np.asarray(scn.workspace.upper)
-                if np.any(position < lo) or np.any(position > hi):
-                    return [f"agents[{n}].{field}: {position.tolist()} is outside the workspace"]
-            for k, ob in enumerate(scn.obstacles):
-                G, g = ob.halfspaces(d)
-                if np.all(G @ position <= g):
-                    return [f"agents[{n}].{field}: {position.tolist()} is inside obstacles[{k}]"]
+        positions = np.array([_full_state(getattr(a, field), scn.dim)[: scn.dim] for a in scn.agents])
+        error = _overlap_error(positions, scn.delta_vector, field, scn.delta) or _placement_error(scn, positions, field)
+        if error is not None:
+            return [error]
     return []
 
 
+def _overlap_error(positions: np.ndarray, delta: np.ndarray, field: str, given: ScalarOrVector) -> str | None:
+    """The first pair of positions within delta of each other on every axis, if any."""
+    for i in range(len(positions) - 1):  # one row of pairs at a time: O(M) numpy calls
+        gaps = np.abs(positions[i + 1 :] - positions[i])
+        inside = np.flatnonzero(np.all(gaps < delta, axis=1))
+        if inside.size:
+            j = i + 1 + int(inside[0])
+            return (f"agents[{j}].{field}: within delta of agents[{i}].{field} "
+                    f"(inf-norm gap {np.max(gaps[inside[0]]):.3g} < delta {given})")
+    return None
+
+
+def _placement_error(scn: Scenario, positions: np.ndarray, field: str) -> str | None:
+    """The first agent whose position lies outside the workspace or inside an obstacle, if any
+    (one numpy call per obstacle, not per agent and obstacle)."""
+    outside = np.zeros(len(positions), bool)
+    if scn.workspace is not None:
+        lo, hi = np.asarray(scn.workspace.lower), np.asarray(scn.workspace.upper)
+        outside = np.any((positions < lo) | (positions > hi), axis=1)
+    inside = np.zeros((len(positions), len(scn.obstacles)), bool)
+    for k, (G, g) in enumerate(scn.obstacle_halfspaces()):
+        inside[:, k] = np.all(positions @ G.T <= g, axis=1)
+    bad = np.flatnonzero(outside | inside.any(axis=1))
+    if not bad.size:
+        return None
+    n = int(bad[0])
+    if outside[n]:
+        return f"agents[{n}].{field}: {positions[n].tolist()} is outside the workspace"
+    return f"agents[{n}].{field}: {positions[n].tolist()} is inside obstacles[{int(np.argmax(inside[n]))}]"
+
+
 _FIELD_PREFIX = re.compile(r"^[A-Za-z_][\w\[\].]*: ")
-_TYPE_TAGS = {"float", "int", "list[float]", "list[list[float]]", "function-after", "function-before"}
+_TYPE_TAGS = frozenset(
+    {"float", "int", "list[float]", "list[list[float]]", "function-after", "function-before", "[key]"}
+)
+
+
+def _location(loc: tuple[Any, ...]) -> str:
+    """A pydantic error location as a dotted path; a key that is not a plain name is quoted, so
+    that a key holding ': ' or a line break cannot pass for another field or another line."""
+    location = ""
+    for part in loc:
+        if isinstance(part, int):
+            location += f"[{part}]"
+        elif str(part) not in _TYPE_TAGS:
+            text = str(part)
+            location += ("." if location else "") + (text if _PLAIN_KEY.fullmatch(text) else short_repr(text))
+    return location
 
 
 def _format_validation_error(err: ValidationError) -> str:
     """One line: the dotted path of the first offending field, then what is wrong with it."""
     first = err.errors()[0]
-    location = ""
-    for part in first["loc"]:
-        if isinstance(part, int):
-            location += f"[{part}]"
-        elif str(part) not in _TYPE_TAGS:
-            location += ("." if location else "") + str(part)
+    location = _location(first["loc"])
     message = {"extra_forbidden": "unknown key", "missing": "is required"}.get(
         first["type"], first["msg"].removeprefix("Value error, ")
     )
@@ -470,26 +707,197 @@ def scenario_from_dict(data: Any, source: str = "scenario") -> Scenario:
     """Validate a plain mapping into a :class:`Scenario`; raise :class:`ScenarioError`."""
     if not isinstance(data, dict):
         raise ScenarioError(f"{source}: expected a mapping of scenario fields at the top level")
+    odd = next((key for key in data if not isinstance(key, str)), None)
+    if odd is not None:
+        raise ScenarioError(f"{source}: keys must be text, got {short_repr(odd)}")
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:
         raise ScenarioError(_format_validation_error(err)) from None
+    except RecursionError:
+        raise ScenarioError(f"{source}: nested too deeply") from None
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario YAML file."""
-    file = Path(path)
+# ------------------------------------------------------------------ bounded YAML
+class _Refused(Exception):
+    """YAML that is well formed but beyond a bound (or a duplicate key), with where it is."""
+
+    def __init__(self, problem: str, mark: Any = None) -> None:
+        super().__init__(problem)
+        self.problem = problem
+        self.mark = mark
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """yaml's SafeLoader (no tag runs code) that refuses nesting deeper than
+    :data:`MAX_YAML_DEPTH` while composing (before Python's recursion limit is near), refuses a
+    mapping that repeats a key, and turns a value its constructors cannot convert (a 5000-digit
+    integer, 31 February) into a refusal at the value's line."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self.depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.depth >= MAX_YAML_DEPTH:
+            raise _Refused(f"nested deeper than {MAX_YAML_DEPTH} levels", self.peek_event().start_mark)
+        self.depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
+
+    def construct_object(self, node: Any, deep: bool = False) -> Any:
+        try:
+            return super().construct_object(node, deep)
+        except (ValueError, OverflowError) as err:
+            raise _Refused(f"cannot read a value ({err.__class__.__name__})", node.start_mark) from None
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        if isinstance(node, yaml.MappingNode):
+            _refuse_duplicate_keys(self, node)
+        return super().construct_mapping(node, deep)
+
+
+def _refuse_duplicate_keys(loader: _BoundedLoader, node: yaml.MappingNode) -> None:
+    """Raise :class:`_Refused` at the second occurrence of a key written twice in one mapping
+    (yaml itself keeps the last one silently); merge keys (``<<``) may override, as YAML intends."""
+    seen: dict[Any, int] = {}
+    for key_node, _value in node.value:
+        if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+            continue
+        key = loader.construct_object(key_node)
+        try:
+            first = seen.get(key)
+        except TypeError:  # unhashable: yaml's own constructor reports it
+            continue
+        if first is not None:
+            raise _Refused(f"duplicate key {short_repr(key)} (first at line {first})", key_node.start_mark)
+        seen[key] = key_node.start_mark.line + 1
+
+
+def _expanded_size(node: yaml.Node, sizes: dict[int, tuple[int, int]], depth: int = 1) -> tuple[int, int]:
+    """(values, levels) below and including ``node`` (at nesting ``depth``) with every alias
+    expanded, memoised per node so that an alias bomb costs one visit per distinct node; raises
+    :class:`_Refused` beyond the bounds or on an alias that contains itself."""
+    known = sizes.get(id(node))
+    if known is None:
+        if depth > MAX_YAML_DEPTH:
+            raise _Refused(f"nested deeper than {MAX_YAML_DEPTH} levels (aliases expanded)", node.start_mark)
+        sizes[id(node)] = (-1, 0)
+        known = _measure_children(node, sizes, depth)
+        sizes[id(node)] = known
+    elif known[0] < 0:
+        raise _Refused("an alias refers to a node that contains it", node.start_mark)
+    if depth - 1 + known[1] > MAX_YAML_DEPTH:  # an alias whose content reaches too deep from here
+        raise _Refused(f"nested deeper than {MAX_YAML_DEPTH} levels (aliases expanded)", node.start_mark)
+    return known
+
+
+def _measure_children(node: yaml.Node, sizes: dict[int, tuple[int, int]], depth: int) -> tuple[int, int]:
+    """(values, levels) of ``node`` from its children's, see :func:`_expanded_size`."""
+    children: list[Any] = []
+    if isinstance(node, yaml.SequenceNode):
+        children = node.value
+    elif isinstance(node, yaml.MappingNode):
+        children = [item for pair in node.value for item in pair]
+    count, levels = 1, 1
+    for child in children:
+        child_count, child_levels = _expanded_size(child, sizes, depth + 1)
+        count += child_count
+        levels = max(levels, child_levels + 1)
+        if count > MAX_YAML_NODES:
+            raise _Refused(f"more than {MAX_YAML_NODES} values with aliases expanded", node.start_mark)
+    return count, levels
+
+
+def _load_bounded(text: str) -> Any:
+    """The data of one YAML document, composed and measured before anything is constructed."""
+    loader = _BoundedLoader(text)
     try:
-        text = file.read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise ScenarioError(f"{file}: cannot read scenario file ({err.__class__.__name__})") from None
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _expanded_size(node, {})
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def parse_yaml_text(text: str, source: str) -> Any:
+    """Parse YAML ``text`` safely and within bounds; ``source`` (a file name) starts every message.
+
+    Refused with a one-line :class:`ScenarioError`: text above :data:`MAX_FILE_BYTES`, nesting
+    deeper than :data:`MAX_YAML_DEPTH`, more than :data:`MAX_YAML_NODES` values once aliases are
+    expanded (a "billion laughs" bomb is refused after one visit per distinct node), a key
+    repeated in one mapping, malformed YAML. Tags beyond yaml's safe set are refused, never run.
+    """
+    size = len(text.encode("utf-8", errors="surrogatepass"))
+    if size > MAX_FILE_BYTES:
+        raise ScenarioError(f"{source}: {size} bytes, more than a scenario file may have ({MAX_FILE_BYTES} bytes)")
     try:
-        data = yaml.safe_load(text)
+        return _load_bounded(text)
+    except _Refused as err:
+        where = f" at line {err.mark.line + 1}" if err.mark is not None else ""
+        raise ScenarioError(f"{source}: {err.problem}{where}") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ScenarioError(f"{file}: malformed YAML{where}") from None
-    return scenario_from_dict(data, source=str(file))
+        raise ScenarioError(f"{source}: malformed YAML{where}") from None
+    except RecursionError:
+        raise ScenarioError(f"{source}: malformed YAML (nested too deeply)") from None
+
+
+_FILE_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+               (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def _not_regular(mode: int) -> str | None:
+    """What a file of ``mode`` is when it is not a regular file; None for a regular file."""
+    if stat.S_ISREG(mode):
+        return None
+    return next((name for test, name in _FILE_KINDS if test(mode)), "not a regular file")
+
+
+def _open_without_blocking(path: str, flags: int) -> int:
+    """``open``'s opener: a FIFO swapped in after the check must not block the open."""
+    return os.open(path, flags | getattr(os, "O_NONBLOCK", 0))
+
+
+def _check_regular(file: Path, info: os.stat_result) -> None:
+    """Refuse anything but a regular file of at most :data:`MAX_FILE_BYTES` (a FIFO would block
+    the read, a device might never end)."""
+    kind = _not_regular(info.st_mode)
+    if kind is not None:
+        raise ScenarioError(f"{file}: cannot read scenario file ({kind}, not a regular file)")
+    if info.st_size > MAX_FILE_BYTES:
+        raise ScenarioError(
+            f"{file}: {info.st_size} bytes, more than a scenario file may have ({MAX_FILE_BYTES} bytes)"
+        )
+
+
+def _read_scenario_text(file: Path) -> str:
+    """The UTF-8 text of ``file``, checked with ``os.stat`` before it is opened, and again on the
+    open file in case it was replaced in between; at most :data:`MAX_FILE_BYTES` are read."""
+    try:
+        _check_regular(file, os.stat(file))
+        with open(file, "rb", opener=_open_without_blocking) as handle:
+            _check_regular(file, os.fstat(handle.fileno()))
+            raw = handle.read(MAX_FILE_BYTES + 1)
+    except OSError as err:
+        raise ScenarioError(f"{file}: cannot read scenario file ({err.__class__.__name__})") from None
+    if len(raw) > MAX_FILE_BYTES:  # grew since the check
+        raise ScenarioError(f"{file}: more than a scenario file may have ({MAX_FILE_BYTES} bytes)")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ScenarioError(f"{file}: cannot read scenario file (UnicodeDecodeError)") from None
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario YAML file (bounded: see :func:`parse_yaml_text`)."""
+    file = Path(path)
+    return scenario_from_dict(parse_yaml_text(_read_scenario_text(file), str(file)), source=str(file))
 
 
 def scenario_to_yaml(scn: Scenario) -> str:

@@ -9,40 +9,55 @@
 * ``wall-door``: a wall with a door between two groups that swap sides.
 * ``pillars``: agents crossing a field of pillars.
 * ``u-trap``: a U-shaped trap in front of a goal; the straight line leads into it.
+
+Every generator declares its arguments in its signature (all take ``seed``, the scenario's seed,
+which ``random`` and ``spread`` also draw their points from); :func:`builtin_scenario` refuses
+any other argument and any value out of range before the generator runs.
 """
 
 from __future__ import annotations
 
+import inspect
+import numbers
 from collections.abc import Callable
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
-from swarmpc.config import Scenario, ScenarioError, scenario_from_dict
-from swarmpc.model.geometry import point_box_distance
+from swarmpc.config import (
+    MAX_AGENTS,
+    MAX_MAGNITUDE,
+    MAX_SEED,
+    Scenario,
+    ScenarioError,
+    scenario_from_dict,
+    short_repr,
+)
+from swarmpc.model.geometry import box_signed_distance
 
 PAPER = {"dt": 0.1, "horizon": 10, "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}, "stop": {"max_steps": 600}}
 
 
-def paper_2d(delta: float = 0.3, **_: Any) -> dict[str, Any]:
+def paper_2d(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
     corners = [[-1.5, -1.5], [1.5, -1.5], [1.5, 1.5], [-1.5, 1.5]]
     agents = [{"start": corners[i], "goal": corners[(i + 2) % 4]} for i in range(4)]
-    return {"name": "paper-2d", "dim": 2, **PAPER, "delta": delta,
+    return {"name": "paper-2d", "dim": 2, **PAPER, "delta": delta, "seed": seed,
             "workspace": {"lower": [-3.0, -3.0], "upper": [3.0, 3.0]}, "agents": agents}
 
 
-def paper_3d(delta: float = 0.3, **_: Any) -> dict[str, Any]:
+def paper_3d(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
     corners = [[-1.5, -1.5, 0.5], [1.5, -1.5, 2.5], [1.5, 1.5, 0.5], [-1.5, 1.5, 2.5]]
     agents = [
         {"start": corners[i], "goal": [-corners[i][0], -corners[i][1], 3.0 - corners[i][2]]}
         for i in range(4)
     ]
-    return {"name": "paper-3d", "dim": 3, **PAPER, "delta": delta,
+    return {"name": "paper-3d", "dim": 3, **PAPER, "delta": delta, "seed": seed,
             "workspace": {"lower": [-3.0, -3.0, 0.0], "upper": [3.0, 3.0, 3.0]}, "agents": agents}
 
 
 def circle(agents: int = 8, dim: int = 2, radius: float | None = None, delta: float = 0.3,
-           **_: Any) -> dict[str, Any]:
+           seed: int = 0) -> dict[str, Any]:
     m = int(agents)
     if dim == 2:
         r = radius or max(2.0, 1.2 * m * delta / np.pi + 0.5)
@@ -64,7 +79,7 @@ def circle(agents: int = 8, dim: int = 2, radius: float | None = None, delta: fl
     lower = (center - bound).tolist()
     upper = (center + bound).tolist()
     return {"name": f"circle-{m}" if dim == 2 else f"sphere-{m}", "dim": dim, **PAPER,
-            "delta": delta, "workspace": {"lower": lower, "upper": upper},
+            "delta": delta, "seed": seed, "workspace": {"lower": lower, "upper": upper},
             "agents": [{"start": s.round(6).tolist(), "goal": g.round(6).tolist()}
                        for s, g in zip(starts, goals)],
             "stop": {"max_steps": 600}}
@@ -79,8 +94,7 @@ apart by the stop's own check, not by the tolerance (docs/admm.md)."""
 
 
 def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.3,
-                 min_gap: float = 0.5, clearance: float = 0.1, box_scale: float = 1.0,
-                 **_: Any) -> dict[str, Any]:
+                 min_gap: float = 0.5, clearance: float = 0.1, box_scale: float = 1.0) -> dict[str, Any]:
     """Seeded random starts and goals in a 3 x 3 (x 2) m box, pairwise >= ``min_gap`` apart.
 
     ``box_scale`` stretches every side of the box (the floor stays at z = 0.2) and the step cap
@@ -95,17 +109,19 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
     lower = np.array([-1.5 * box_scale, -1.5 * box_scale, 0.2][:dim])
     upper = np.array([1.5 * box_scale, 1.5 * box_scale, 0.2 + 2.0 * box_scale][:dim])
 
-    def spaced(p: np.ndarray, q: np.ndarray) -> bool:
-        return bool(np.linalg.norm(p - q) >= min_gap and point_box_distance(p - q, delta) >= clearance)
+    def spaced(p: np.ndarray, others: np.ndarray) -> bool:  # from every point drawn so far at once
+        offsets = p - others
+        return bool(np.all(np.linalg.norm(offsets, axis=1) >= min_gap)
+                    and np.all(box_signed_distance(offsets, delta) >= clearance))
 
     def sample() -> np.ndarray:
-        points: list[np.ndarray] = []
+        points, count = np.empty((agents, dim)), 0
         for _attempt in range(200000):
             p = rng.uniform(lower + 0.1, upper - 0.1)
-            if all(spaced(p, q) for q in points):
-                points.append(p)
-                if len(points) == agents:
-                    return np.array(points)
+            if spaced(p, points[:count]):
+                points[count], count = p, count + 1
+                if count == agents:
+                    return points
         raise ScenarioError(f"agents: {agents} agents do not fit {min_gap} m apart in the random box")
 
     starts, goals = sample(), sample()
@@ -121,7 +137,7 @@ SPREAD_DENSITY_AGENTS = 8
 """The ``spread`` family keeps the density of ``random`` with this many agents."""
 
 
-def spread_swarm(agents: int = 16, dim: int = 3, seed: int = 0, delta: float = 0.3, **_: Any) -> dict[str, Any]:
+def spread_swarm(agents: int = 16, dim: int = 3, seed: int = 0, delta: float = 0.3) -> dict[str, Any]:
     """``random`` at a constant density: the box grows with the swarm so that every agent has the
     room it has in the 3 x 3 x 2 m box with 8 agents (side x (M / 8)^(1/d)).
 
@@ -133,9 +149,9 @@ def spread_swarm(agents: int = 16, dim: int = 3, seed: int = 0, delta: float = 0
     return {**spec, "name": f"spread-{dim}d-{agents}-s{seed}"}
 
 
-def wall_door(delta: float = 0.2, **_: Any) -> dict[str, Any]:
+def wall_door(delta: float = 0.2, seed: int = 0) -> dict[str, Any]:
     """A wall across x = 0 with a 1.2 m door at y in [-0.6, 0.6]; two agents swap sides."""
-    return {"name": "wall-door", "dim": 2, **PAPER, "delta": delta,
+    return {"name": "wall-door", "dim": 2, **PAPER, "delta": delta, "seed": seed,
             "workspace": {"lower": [-3.0, -3.0], "upper": [3.0, 3.0]},
             "obstacles": [{"box": {"center": [0.0, 1.8], "half_size": [0.15, 1.2]}},
                           {"box": {"center": [0.0, -1.8], "half_size": [0.15, 1.2]}}],
@@ -144,23 +160,23 @@ def wall_door(delta: float = 0.2, **_: Any) -> dict[str, Any]:
             "stop": {"max_steps": 600}}
 
 
-def pillars(delta: float = 0.2, **_: Any) -> dict[str, Any]:
+def pillars(delta: float = 0.2, seed: int = 0) -> dict[str, Any]:
     """Four agents crossing a 3 x 3 grid of square pillars."""
     obstacles = [{"box": {"center": [x, y], "half_size": [0.2, 0.2]}}
                  for x in (-1.0, 0.0, 1.0) for y in (-1.0, 0.0, 1.0)]
     agents = [{"start": [-2.5, -0.5], "goal": [2.5, 0.5]}, {"start": [2.5, -0.5], "goal": [-2.5, 0.5]},
               {"start": [-0.5, -2.5], "goal": [0.5, 2.5]}, {"start": [0.5, 2.5], "goal": [-0.5, -2.5]}]
-    return {"name": "pillars", "dim": 2, **PAPER, "delta": delta,
+    return {"name": "pillars", "dim": 2, **PAPER, "delta": delta, "seed": seed,
             "workspace": {"lower": [-3.0, -3.0], "upper": [3.0, 3.0]},
             "obstacles": obstacles, "agents": agents, "stop": {"max_steps": 600}}
 
 
-def u_trap(delta: float = 0.2, **_: Any) -> dict[str, Any]:
+def u_trap(delta: float = 0.2, seed: int = 0) -> dict[str, Any]:
     """A U open towards the start sits between the agent and its goal: straight guesses stall."""
     obstacles = [{"box": {"center": [0.5, 0.0], "half_size": [0.1, 1.0]}},
                  {"box": {"center": [-0.1, 0.9], "half_size": [0.5, 0.1]}},
                  {"box": {"center": [-0.1, -0.9], "half_size": [0.5, 0.1]}}]
-    return {"name": "u-trap", "dim": 2, **PAPER, "delta": delta,
+    return {"name": "u-trap", "dim": 2, **PAPER, "delta": delta, "seed": seed,
             "workspace": {"lower": [-3.0, -3.0], "upper": [3.0, 3.0]},
             "obstacles": obstacles,
             "agents": [{"start": [-2.0, 0.0], "goal": [2.0, 0.0]}],
@@ -179,9 +195,66 @@ BUILTINS: dict[str, tuple[Callable[..., dict[str, Any]], str]] = {
 }
 
 
+MAX_BOX_SCALE = 100.0
+"""Largest ``box_scale`` of the random family (its step cap grows with it)."""
+
+_INTEGER_RANGES = MappingProxyType({"agents": (1, MAX_AGENTS), "dim": (2, 3), "seed": (0, MAX_SEED)})
+"""Per integer argument of the generators: (smallest, largest)."""
+_REAL_RANGES = MappingProxyType({
+    "delta": (False, MAX_MAGNITUDE), "radius": (False, MAX_MAGNITUDE), "min_gap": (False, MAX_MAGNITUDE),
+    "clearance": (True, MAX_MAGNITUDE), "box_scale": (False, MAX_BOX_SCALE),
+})
+"""Per real argument of the generators: (whether 0 is allowed, the largest value)."""
+
+
+def builtin_parameters(name: str) -> tuple[str, ...]:
+    """The arguments the built-in ``name``'s generator takes (its signature is the declaration)."""
+    return tuple(inspect.signature(BUILTINS[name][0]).parameters)
+
+
+def _argument_problem(key: str, value: Any) -> str | None:
+    """What is wrong with the value of a generator argument, if anything: integers are integers
+    (not booleans) in range, reals are finite numbers in range."""
+    if key in _INTEGER_RANGES:
+        low, high = _INTEGER_RANGES[key]
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            return f"expected an integer, got {short_repr(value)}"
+        if low <= value <= high:
+            return None
+        allowed = f"{low} or {high}" if high == low + 1 else f"between {low} and {high}"
+        return f"must be {allowed}, got {short_repr(value)}"
+    zero_allowed, high = _REAL_RANGES[key]
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return f"expected a number, got {short_repr(value)}"
+    number = value if isinstance(value, numbers.Integral) else float(value)
+    if not ((number >= 0 if zero_allowed else number > 0) and number <= high):  # NaN fails too
+        return f"must be {'>=' if zero_allowed else '>'} 0 and <= {high:g}, got {short_repr(value)}"
+    return None
+
+
+def _checked_arguments(name: str, params: dict[str, Any]) -> dict[str, Any]:
+    """The given arguments (None: not given) of built-in ``name``, each known to its generator and
+    in range, integers as plain ``int``; raises :class:`ScenarioError` naming the argument."""
+    accepted = builtin_parameters(name)
+    given = {key: value for key, value in params.items() if value is not None}
+    for key, value in given.items():
+        label = key if key.isidentifier() else short_repr(key)
+        if key not in accepted:
+            raise ScenarioError(f"{label}: not an argument of built-in {name!r} (accepts: {', '.join(accepted)})")
+        problem = _argument_problem(key, value)
+        if problem is not None:
+            raise ScenarioError(f"{label}: {problem}")
+    return {key: int(value) if key in _INTEGER_RANGES else value for key, value in given.items()}
+
+
 def builtin_scenario(name: str, **params: Any) -> Scenario:
-    """A built-in scenario by name; ``params`` (agents, dim, seed, delta) shape the generators."""
+    """A built-in scenario by name; ``params`` shape its generator (:func:`builtin_parameters`).
+
+    A None value means "not given" (the command line passes agents, dim and seed to every
+    built-in); an argument the generator does not take, or a value out of range, is a
+    :class:`ScenarioError` naming it, raised before the generator runs.
+    """
     if name not in BUILTINS:
-        raise ScenarioError(f"scenario: unknown built-in {name!r} (see 'swarmpc scenarios')")
+        raise ScenarioError(f"scenario: unknown built-in {short_repr(name)} (see 'swarmpc scenarios')")
     factory = BUILTINS[name][0]
-    return scenario_from_dict(factory(**{k: v for k, v in params.items() if v is not None}), source=name)
+    return scenario_from_dict(factory(**_checked_arguments(name, params)), source=name)

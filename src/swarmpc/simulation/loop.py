@@ -77,6 +77,7 @@ def simulate(
     and the true state receives process noise after each step; the stop test and every metric use
     the true state.
     """
+    scn = scn.revalidated()  # the lists of a frozen scenario can still be changed in place
     started = time.perf_counter()
     settings = OCPSettings.from_scenario(scn)
     solver = solver or make_solver(scn, settings, executor)
