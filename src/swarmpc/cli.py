@@ -21,7 +21,7 @@ import numpy as np
 import typer
 
 from swarmpc._launch import caused_by_interrupt
-from swarmpc.config import Scenario, ScenarioError, load_scenario
+from swarmpc.config import MAX_AGENTS, Scenario, ScenarioError, load_scenario
 from swarmpc.simulation.outdir import OutputError, RunFolderTarget
 
 app = typer.Typer(
@@ -555,8 +555,8 @@ def bench(
         size_list = [int(v) for v in sizes.split(",")] if sizes else None
     except ValueError:
         fail(f"--sizes: expected comma-separated integers, got {sizes!r}")
-    if size_list is not None and any(m < 1 for m in size_list):
-        fail(f"--sizes: every size must be >= 1, got {sizes!r}")
+    if size_list is not None and any(not 1 <= m <= MAX_AGENTS for m in size_list):
+        fail(f"--sizes: every size must be between 1 and {MAX_AGENTS}, got {sizes!r}")
     family_list = [f.strip() for f in families.split(",") if f.strip()]
     unknown = sorted(set(family_list) - set(FAMILIES))
     if unknown or not family_list:
