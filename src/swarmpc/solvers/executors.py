@@ -272,7 +272,7 @@ class RayExecutor:
             check_reachable(self._address, RAY_CONNECT_TIMEOUT_S)
             use_token_if_present()
         try:
-            with _quiet_stderr():  # Ray's core logs every retry on the process's own stderr
+            with _quiet_stderr(), _keep_sigterm_handler():
                 self._ray.init(address=self._address, include_dashboard=False, log_to_driver=False,
                                configure_logging=False)
         except Exception as err:  # noqa: BLE001 - Ray raises many types for a failed connection
@@ -320,6 +320,18 @@ def use_token_if_present() -> None:
             Config.initialize("")
         except (ImportError, AttributeError):  # pragma: no cover - another Ray version
             pass
+
+
+@contextmanager
+def _keep_sigterm_handler() -> Iterator[None]:
+    """Ray's core installs its own SIGTERM handler (a stack dump, then death); the caller's
+    handler (the command line's: finish the step, write the run) is put back afterwards."""
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 @contextmanager
