@@ -1,0 +1,870 @@
+"""One agent's local ADMM step as a short sequence of QPs with the OBCA certificates held fixed.
+
+The local problem of :func:`swarmpc.formulation.ocp.build_local` (free copies, the default) is an
+NLP only because its collision rows are bilinear in (position, certificate lambda). With lambda
+fixed, a row (G q - g)^T lambda >= d_min is LINEAR in the own positions and the copies, and with a
+dual-feasible lambda (lambda >= 0, ||G^T lambda||_2 <= 1) weak duality makes any plan meeting it
+keep the Euclidean distance >= d_min (:mod:`swarmpc.formulation.certificates`): each QP's answer
+is safe as it stands. The rest of the problem (quadratic cost, consensus terms, dynamics, input,
+workspace and plane limits) is already a QP; the speed limit ||v_k||_2 <= v_max is replaced by an
+INNER polytope (F unit normals a_f, a_f' v <= r v_max with r = 1 / max vertex norm of
+{a_f' v <= 1}), so the true limit always holds (r = 0.981 for 16 facets in 2D, 0.886 for the 26
+cube directions in 3D: the QP is that much more conservative where the limit is active).
+
+Certificate loop (:class:`SequentialLocalQP`), a convex-restriction SCP:
+
+1. lambda_0 = the best certificates of the guess (own plan against the copies / obstacles);
+2. solve the QP with lambda_r fixed (warm-started from the previous round);
+3. lambda_{r+1} = the best certificates of the new plan. Their values equal the exact distances,
+   which the plan keeps >= d_min, so the plan stays feasible for the next QP: the cost never
+   rises, and a fixed point (lambda = best certificate of the plan, plan optimal for lambda) is a
+   KKT point of the OBCA NLP (the best certificate maximises the row over lambda, which is the
+   NLP's stationarity in lambda);
+4. stop after ``max_rounds`` or when the plan moved less than ``plan_tol`` or the certificates of
+   the rows within ``active_band`` of their bound changed less than ``certificate_tol`` (inactive
+   rows cannot change the answer while they stay inactive, and they do: their exact value only
+   grows).
+
+If the first QP is infeasible (the guess's certificates demand a separation the dynamics cannot
+reach), the loop restarts from the certificates of the coasting and then the braking plan.
+
+The QP solver is OSQP through its own API, chosen by measurement (benchmarks/qp_solvers.py: the
+fastest sparse solver once certificate rounds change matrix values; DAQP is faster only while
+nothing but vectors change and the solver keeps its own working set, which a solver shared by
+agents cannot). It is set up once per problem shape (copies, planes, pinned copies, pair form); a
+call changes only vectors and, where certificates or planes changed, matrix VALUES in a fixed
+sparsity pattern (explicit zeros kept), updated in place. A first-order answer violates rows by
+up to its tolerance: polishing makes it exact on its active set in practice, every separation,
+workspace, plane and speed row is tightened by ``margin`` in case it does not, and the applied
+plan is rebuilt exactly (inputs clipped to their box, states rolled out through the discrete
+dynamics) and checked: separations by the values of its dual-feasible certificates (lower bounds
+on the distances, exact certificates if those fall short), the rest directly. A hard-form plan
+that is not clear is reported failed.
+
+Interface: :class:`QPLocalLadder` has the ``solve`` signature of
+:class:`swarmpc.solvers.admm.LocalSolverLadder` and returns :class:`NLPSolution` with the same
+named blocks, so ``LocalAgent`` can call it in its place. Its ``x_vec`` is the QP's primal
+vector followed by the certificates of the last round (as the NLP's vector carries its L blocks),
+``lam_g`` the QP's multipliers: passed back as the next guess and ``duals`` they warm-start the
+next ADMM iteration's solve and carry its certificates over.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import HalfspaceIntersection
+
+from swarmpc.formulation.certificates import PolytopeCertifier, box_certificates, pair_rows
+from swarmpc.formulation.nlp import NLPSolution
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.model.dynamics import discrete_matrices
+
+__all__ = [
+    "LocalShape",
+    "OSQPBackend",
+    "QPAnswer",
+    "QPBackend",
+    "QPLocalLadder",
+    "QPLocalOptions",
+    "LocalQPProblem",
+    "SequentialLocalQP",
+    "speed_polytope",
+]
+
+
+@dataclass(frozen=True)
+class QPLocalOptions:
+    """Tolerances of the QP local step (OSQP's, the margin, the certificate loop's)."""
+
+    eps_abs: float = 1e-6
+    eps_rel: float = 1e-6
+    max_iter: int = 4000
+    polish: bool = True
+    """OSQP's polishing: solves the KKT system of the guessed active set, so the answer meets its
+    active rows to ~1e-12 (measured: every QP of the benchmark's replay but a handful)."""
+    check_termination: int = 5
+    """OSQP tests for termination every this many iterations (its default 25 made every
+    warm-started solve run 25 iterations; 5 took 5-15, measured in benchmarks/qp_solvers.py)."""
+    margin: float = 1e-5
+    """[m] tightening of every separation, plane, workspace and speed row: covers OSQP's primal
+    tolerance (~eps_abs + eps_rel * |row| when polishing fails), so d_min itself is never eaten."""
+    max_rounds: int = 5
+    """Certificate rounds per call. Each round's plan is safe, so a capped loop is an inexact but
+    safe local step that the next ADMM iteration continues (its guess carries the certificates);
+    5 and 10 gave the same plans on recorded problems up to the 90th percentile."""
+    plan_tol: float = 1e-6
+    """[m] stop when the QP's answer moved less than this from its start."""
+    certificate_tol: float = 1e-6
+    """Stop when no certificate normal of a row at (or near) its bound moved more than this."""
+    active_band: float = 1e-3
+    """[m] a row within this of its bound counts as near it for ``certificate_tol``."""
+    speed_facets: int | None = None
+    """Facets of the inner speed polytope; None: 16 in 2D, the 26 cube directions in 3D."""
+
+
+@dataclass(frozen=True)
+class LocalShape:
+    """What fixes the QP's size and sparsity: copy slots, plane slots, whether the copies are
+    pinned constants (a repair pass) and the form of the pair rows ("hard" / "soft")."""
+
+    copies: int
+    planes: int = 0
+    pinned: bool = False
+    pair_collision: str = "hard"
+
+
+def speed_polytope(dim: int, facets: int | None = None) -> tuple[np.ndarray, float]:
+    """Unit normals (F, d) and ratio r of the inner polytope {a_f' v <= r v_max} of the speed ball.
+
+    r = 1 / (largest vertex norm of {a_f' v <= 1}), so every vertex, hence the polytope, lies in
+    the ball of radius v_max, and the polytope holds the ball of radius r v_max.
+    """
+    normals = _sphere_directions(dim, facets)
+    halfspaces = np.hstack([normals, -np.ones((len(normals), 1))])
+    vertices = HalfspaceIntersection(halfspaces, np.zeros(dim)).intersections
+    return normals, float(1.0 / np.linalg.norm(vertices, axis=1).max())
+
+
+def _sphere_directions(dim: int, count: int | None) -> np.ndarray:
+    """Evenly spread unit directions: a regular polygon in 2D; in 3D the 26 cube directions
+    (count None or 26) or a Fibonacci sphere."""
+    if dim == 2:
+        angles = 2 * np.pi * np.arange(count or 16) / (count or 16)
+        return np.column_stack([np.cos(angles), np.sin(angles)])
+    if count in (None, 26):
+        cube = np.array([v for v in itertools.product((-1, 0, 1), repeat=3) if any(v)], float)
+        return cube / np.linalg.norm(cube, axis=1)[:, None]
+    index = np.arange(count) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * index / count), np.pi * (1 + 5**0.5) * index
+    return np.column_stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)])
+
+
+class _Counter:
+    """Hands out consecutive indices in blocks of any shape (row-major over the given shape)."""
+
+    def __init__(self) -> None:
+        self.size = 0
+
+    def take(self, *shape: int) -> np.ndarray:
+        count = int(np.prod(shape)) if shape else 1
+        block = np.arange(self.size, self.size + count).reshape(shape)
+        self.size += count
+        return block
+
+
+class VariableLayout:
+    """Indices of the QP's variables, in this order: states ``X`` (2d, N+1) and inputs ``U``
+    (d, N) step by step, copies ``C`` (n, d, K) step by step unless pinned, soft slacks of the
+    pair rows (n, K) and of the obstacle rows (n_o, K)."""
+
+    def __init__(self, s: OCPSettings, shape: LocalShape) -> None:
+        d, N, K, n = s.dim, s.horizon, s.num_constrained, shape.copies
+        counter = _Counter()
+        self.X = counter.take(N + 1, 2 * d).T
+        self.U = counter.take(N, d).T
+        self.copy_start = counter.size
+        self.C = np.zeros((n, d, K), int) if shape.pinned else np.transpose(counter.take(n, K, d), (0, 2, 1))
+        self.slack_start = counter.size
+        self.pair_slack = counter.take(n, K) if shape.pair_collision == "soft" else np.zeros((0, K), int)
+        soft_obstacles = s.collision == "soft" and s.obstacles
+        self.obstacle_slack = counter.take(len(s.obstacles), K) if soft_obstacles else np.zeros((0, K), int)
+        self.own = self.X[:d, s.first_constrained_step:]
+        self.size = counter.size
+
+
+class TripletMatrix:
+    """A sparse matrix with a fixed pattern whose entries are addressed by slot: entries are
+    added once (explicit zeros kept, entries at the same place summed), then values set by
+    slot are read out as CSC data (``data``), so solvers can update them in place."""
+
+    def __init__(self, cols: int) -> None:
+        self.cols = cols
+        self._rows: list[np.ndarray] = []
+        self._cols: list[np.ndarray] = []
+        self._values: list[np.ndarray] = []
+        self.count = 0
+        self.position = np.zeros(0, int)
+        self.nnz = 0
+
+    def add(self, rows: np.ndarray, cols: np.ndarray, values: Any = 0.0) -> np.ndarray:
+        """Add entries (broadcast together); returns their slots, shaped like the broadcast."""
+        rows, cols, values = np.broadcast_arrays(np.asarray(rows), np.asarray(cols), np.asarray(values, float))
+        slots = np.arange(self.count, self.count + rows.size).reshape(rows.shape)
+        self._rows.append(rows.ravel())
+        self._cols.append(cols.ravel())
+        self._values.append(values.ravel())
+        self.count += rows.size
+        return slots
+
+    def freeze(self, rows: int) -> tuple[sp.csc_matrix, np.ndarray]:
+        """(CSC matrix with sorted indices, slot values); sets ``position``: slot -> data index."""
+        r = np.concatenate(self._rows).astype(np.int64) if self._rows else np.zeros(0, np.int64)
+        c = np.concatenate(self._cols).astype(np.int64) if self._cols else np.zeros(0, np.int64)
+        values = np.concatenate(self._values) if self._values else np.zeros(0)
+        unique, self.position = np.unique(c * rows + r, return_inverse=True)  # column-major order
+        self.nnz = unique.size
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(unique // rows, minlength=self.cols))])
+        matrix = sp.csc_matrix((self.data(values), unique % rows, indptr), shape=(rows, self.cols))
+        return matrix, values
+
+    def data(self, values: np.ndarray) -> np.ndarray:
+        """CSC data of slot values (entries at the same place summed)."""
+        return np.bincount(self.position, weights=values, minlength=self.nnz)
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    """Fixed certificates of one QP and the linear rows they make: per pair (n, ...) and per
+    obstacle (n_o, ...), the normal G^T lambda (d, K), the constant and the certified value
+    (signed distance at the positions they were computed at)."""
+
+    pair_lam: np.ndarray
+    pair_normal: np.ndarray
+    pair_constant: np.ndarray
+    pair_value: np.ndarray
+    obstacle_lam: tuple[np.ndarray, ...]
+    obstacle_normal: np.ndarray
+    obstacle_constant: np.ndarray
+    obstacle_value: np.ndarray
+
+
+class Certifier:
+    """Best certificates of an own plan against copies (delta boxes) and static obstacles, and
+    the linear rows of given certificates."""
+
+    def __init__(self, s: OCPSettings) -> None:
+        self.dim, self.horizon = s.dim, s.num_constrained
+        self.obstacles = [PolytopeCertifier(G, g) for G, g in s.obstacles]
+        self.G = [np.asarray(G, float) for G, _ in s.obstacles]
+        self.g = [np.asarray(g, float) for _, g in s.obstacles]
+        self.size = 2 * s.dim + sum(len(g) for g in self.g)
+        """Certificate entries per constrained step of one copy's pair rows plus all obstacles."""
+
+    def __call__(self, own: np.ndarray, copies: np.ndarray, delta: np.ndarray) -> Linearisation:
+        """The best certificates for own positions (d, K) and copies (n, d, K)."""
+        d, K = own.shape
+        n = len(copies)
+        pair = box_certificates(np.transpose(own[None] - copies, (1, 0, 2)).reshape(d, n * K), delta)
+        lam = np.transpose(pair.lam.reshape(2 * d, n, K), (1, 0, 2))
+        certs = [certifier(own) for certifier in self.obstacles]
+        return self.rows(own, copies, delta, lam, tuple(c.lam for c in certs))
+
+    def rows(self, own: np.ndarray, copies: np.ndarray, delta: np.ndarray, pair_lam: np.ndarray,
+             obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
+        """The linear rows of fixed certificates, and their values at (own, copies)."""
+        d, K = own.shape
+        n = len(copies)
+        normal, constant = pair_rows(np.transpose(pair_lam, (1, 0, 2)).reshape(2 * d, n * K), delta)
+        normal = np.transpose(normal.reshape(d, n, K), (1, 0, 2))
+        constant = constant.reshape(n, K)
+        o_normal = np.array([G.T @ lam for G, lam in zip(self.G, obstacle_lam)]).reshape(-1, d, K)
+        o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam)]).reshape(-1, K)
+        return Linearisation(
+            pair_lam=pair_lam, pair_normal=normal, pair_constant=constant,
+            pair_value=np.einsum("ndk,ndk->nk", normal, own[None] - copies) - constant,
+            obstacle_lam=obstacle_lam, obstacle_normal=o_normal, obstacle_constant=o_constant,
+            obstacle_value=np.einsum("odk,dk->ok", o_normal, own) - o_constant,
+        )
+
+    def pack(self, lin: Linearisation) -> np.ndarray:
+        """The certificates as one vector (to travel with a solution's primal vector)."""
+        return np.concatenate([lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]])
+
+    def unpack(self, vector: np.ndarray, copies: int) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """(pair certificates (n, 2d, K), obstacle certificates) from :meth:`pack`'s vector."""
+        d, K = self.dim, self.horizon
+        stop = copies * 2 * d * K
+        pair, rest, obstacles = vector[:stop].reshape(copies, 2 * d, K), vector[stop:], []
+        for g in self.g:
+            obstacles.append(rest[: len(g) * K].reshape(len(g), K))
+            rest = rest[len(g) * K:]
+        return pair, tuple(obstacles)
+
+
+class LocalQPProblem:
+    """The QP data of one local-problem shape: minimise 1/2 x'Px + q'x s.t. l <= Ax <= u.
+
+    Built once: the variable layout, the fixed sparsity patterns of P (upper triangle) and A,
+    and every constant value. Per call it fills the vectors (``linear_cost``, ``bounds``) and the
+    values that change (``cost_values``: rho and the owner weight; ``constraint_values``: the
+    certificate and plane normals), all in the patterns' CSC order.
+    """
+
+    def __init__(self, s: OCPSettings, shape: LocalShape, options: QPLocalOptions) -> None:
+        self.settings, self.shape, self.options = s, shape, options
+        self.layout = VariableLayout(s, shape)
+        self.speed_normals, ratio = speed_polytope(s.dim, options.speed_facets) if s.speed else (None, 1.0)
+        self.speed_bound = ratio * s.speed - options.margin if s.speed else np.inf
+        self._copy_keys = ([f"Y{c}" for c in range(shape.copies)], [f"Z{c}" for c in range(shape.copies)])
+        self._cost_pattern()
+        self._constraint_pattern()
+
+    # --- cost -------------------------------------------------------------------------------
+    def _cost_pattern(self) -> None:
+        s, lay = self.settings, self.layout
+        P = TripletMatrix(lay.size)
+        for k in range(s.horizon + 1):
+            self._add_block(P, lay.X[:, k], 2.0 * (s.Q if k < s.horizon else s.Qf))
+        for k in range(s.horizon):
+            self._add_block(P, lay.U[:, k], 2.0 * s.R)
+        own = P.add(lay.own, lay.own)  # the consensus diagonal: slots of its own, summed on Q's
+        copies = P.add(lay.C, lay.C) if not self.shape.pinned else np.zeros(0, int)
+        self.P, base = P.freeze(lay.size)
+        own_mask, copy_mask = np.zeros(P.count), np.zeros(P.count)
+        own_mask[own.ravel()] = 1.0
+        copy_mask[np.ravel(copies)] = 1.0
+        self._P_parts = (P.data(base), P.data(own_mask), P.data(copy_mask))
+
+    @staticmethod
+    def _add_block(P: TripletMatrix, index: np.ndarray, block: np.ndarray) -> None:
+        """Upper triangle of a dense block (its nonzeros and the diagonal) on variables ``index``."""
+        rows, cols = np.nonzero(np.triu((block != 0) | np.eye(len(index), dtype=bool)))
+        P.add(index[rows], index[cols], block[rows, cols])
+
+    def cost_values(self, rho: float, owner_weight: float) -> np.ndarray:
+        """P's data (CSC order of the upper triangle) for penalty rho and owner weight."""
+        base, own, copy = self._P_parts
+        return base + rho * owner_weight * own + rho * copy
+
+    def linear_cost(self, params: dict[str, Any]) -> np.ndarray:
+        """q: goal tracking, consensus (gamma - rho_b z per block) and slack prices, written
+        block by block in the layout's order."""
+        s, lay, d, first = self.settings, self.layout, self.settings.dim, self.settings.first_constrained_step
+        goal = np.asarray(params["goal"], float)
+        rho, weight = float(params["rho"]), float(params["owner_weight"])
+        states = np.empty((s.horizon + 1, 2 * d))
+        states[:-1] = -2.0 * s.Q @ goal
+        states[-1] = -2.0 * s.Qf @ goal
+        states[first:, :d] += (np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)).T
+        q = np.zeros(lay.size)
+        q[: states.size] = states.ravel()
+        if not self.shape.pinned and self.shape.copies:
+            Y = np.array([params[key] for key in self._copy_keys[0]], float)
+            Z = np.array([params[key] for key in self._copy_keys[1]], float)
+            q[lay.copy_start: lay.slack_start] = np.transpose(Y - rho * Z, (0, 2, 1)).ravel()
+        q[lay.slack_start:] = s.kappa
+        return q
+
+    # --- constraints ------------------------------------------------------------------------
+    def _constraint_pattern(self) -> None:
+        """Rows in blocks (named in ``rows``): initial state, dynamics, limits, collision rows,
+        slack signs; fixed values set here, changing ones (``_*_slots``) left for each call."""
+        self.rows: dict[str, np.ndarray] = {}
+        self._row_counter, self._lower, self._upper = _Counter(), [], []
+        A = TripletMatrix(self.layout.size)
+        self._dynamics_rows(A)
+        self._limit_rows(A)
+        self._collision_rows(A)
+        self.A, self._A_values = A.freeze(self._row_counter.size)
+        self._A_pattern = A
+        self.base_lower, self.base_upper = np.concatenate(self._lower), np.concatenate(self._upper)
+
+    def _block(self, name: str, *size: int, lower: Any = 0.0, upper: Any = np.inf) -> np.ndarray:
+        """Row indices of a new block of rows, with their constant bounds."""
+        index = self._row_counter.take(*size)
+        self.rows[name] = index
+        self._lower.append(np.broadcast_to(np.asarray(lower, float), index.shape).ravel())
+        self._upper.append(np.broadcast_to(np.asarray(upper, float), index.shape).ravel())
+        return index
+
+    def _dynamics_rows(self, A: TripletMatrix) -> None:
+        """x_0 = measured state; x_{k+1} - A x_k - B u_k = 0."""
+        s, lay = self.settings, self.layout
+        Ad, Bd = discrete_matrices(s.dim, s.dt, s.discretization)  # type: ignore[arg-type]
+        A.add(self._block("init", 2 * s.dim, lower=0.0, upper=0.0), lay.X[:, 0], 1.0)
+        dyn = self._block("dyn", s.horizon, 2 * s.dim, lower=0.0, upper=0.0).T  # (2d, N)
+        A.add(dyn, lay.X[:, 1:], 1.0)
+        for i, j in zip(*np.nonzero(Ad)):
+            A.add(dyn[i], lay.X[j, :-1], -Ad[i, j])
+        for i, j in zip(*np.nonzero(Bd)):
+            A.add(dyn[i], lay.U[j], -Bd[i, j])
+
+    def _limit_rows(self, A: TripletMatrix) -> None:
+        """Input box, workspace box (tightened by the margin), inner speed polytope."""
+        s, lay, d = self.settings, self.layout, self.settings.dim
+        N, K = s.horizon, s.num_constrained
+        if s.accel is not None:
+            A.add(self._block("accel", N, d, lower=-s.accel, upper=s.accel).T, lay.U, 1.0)
+        if s.lower is not None and s.upper is not None:
+            margin = self.options.margin
+            rows = self._block("workspace", K, d, lower=s.lower + margin, upper=s.upper - margin)
+            A.add(rows.T, lay.own, 1.0)
+        if s.speed is not None:
+            speed = self._block("speed", N, len(self.speed_normals), lower=-np.inf, upper=self.speed_bound)
+            A.add(speed[:, :, None], lay.X[d:, 1:].T[:, None, :], self.speed_normals[None])
+
+    def _collision_rows(self, A: TripletMatrix) -> None:
+        """Obstacle, pair and plane rows (normals set per call), soft slacks and their signs."""
+        s, lay, shape, K = self.settings, self.layout, self.shape, self.settings.num_constrained
+        obstacles = self._block("obstacles", len(s.obstacles), K)
+        self._obstacle_slots = A.add(obstacles[:, None, :], lay.own[None])  # (n_o, d, K)
+        A.add(obstacles[: len(lay.obstacle_slack)], lay.obstacle_slack, 1.0)
+        pairs = self._block("pairs", shape.copies, K)
+        self._pair_slots = A.add(pairs[:, None, :], lay.own[None])
+        self._copy_slots = A.add(pairs[:, None, :], lay.C) if not shape.pinned else None
+        A.add(pairs[: len(lay.pair_slack)], lay.pair_slack, 1.0)
+        planes = self._block("planes", shape.planes, K)
+        self._plane_slots = A.add(planes[:, None, :], lay.own[None])
+        A.add(self._block("pair_slack", *lay.pair_slack.shape), lay.pair_slack, 1.0)
+        A.add(self._block("obstacle_slack", *lay.obstacle_slack.shape), lay.obstacle_slack, 1.0)
+
+    def constraint_values(self, lin: Linearisation, params: dict[str, Any]) -> np.ndarray:
+        """A's data (CSC order) with the certificates' normals and the planes' normals."""
+        values = self._A_values.copy()
+        values[self._obstacle_slots] = lin.obstacle_normal
+        values[self._pair_slots] = lin.pair_normal
+        if self._copy_slots is not None:
+            values[self._copy_slots] = -lin.pair_normal
+        for p in range(self.shape.planes):
+            values[self._plane_slots[p]] = np.asarray(params[f"Hn{p}"], float)
+        return self._A_pattern.data(values)
+
+    def bounds(
+        self, lin: Linearisation, params: dict[str, Any], pinned: np.ndarray | None = None,
+        slack_caps: dict[int, float] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(l, u): measured state, separation rows d_min + margin + constant (pinned copies move
+        their n'c to the bound), plane offsets, and slack caps (a pinned slack's upper bound)."""
+        s, margin = self.settings, self.options.margin
+        lower, upper = self.base_lower.copy(), self.base_upper.copy()
+        lower[self.rows["init"]] = upper[self.rows["init"]] = np.asarray(params["x0"], float)
+        lower[self.rows["obstacles"]] = s.d_min + margin + lin.obstacle_constant
+        pair = s.d_min + margin + lin.pair_constant
+        if pinned is not None:
+            pair = pair + np.einsum("ndk,ndk->nk", lin.pair_normal, pinned)
+        lower[self.rows["pairs"]] = pair
+        for p in range(self.shape.planes):
+            lower[self.rows["planes"][p]] = np.ravel(params[f"Hb{p}"]) + margin
+        for slot, cap in (slack_caps or {}).items():
+            upper[self.rows["pair_slack"][slot]] = cap
+        return lower, upper
+
+
+@dataclass(frozen=True)
+class QPAnswer:
+    """One QP solve: primal x, dual y, whether it counts as solved, the solver's status, its
+    iterations and its own reported time [s] (Python overhead excluded)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    solved: bool
+    status: str
+    iterations: int
+    solver_time: float
+    exact: bool = False
+    """True when the answer meets its active rows exactly (OSQP: polishing succeeded)."""
+
+
+class QPBackend(Protocol):
+    """What the local step needs of a QP solver: set up once, then update data and warm-start."""
+
+    def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, l: np.ndarray, u: np.ndarray) -> None: ...
+
+    def update(self, q: np.ndarray, l: np.ndarray, u: np.ndarray, P_data: np.ndarray | None,
+               A_data: np.ndarray | None) -> None: ...
+
+    def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer: ...
+
+
+class OSQPBackend:
+    """OSQP through its own Python API: P (upper triangle) and A set up once; later calls update
+    vectors and, when given, matrix values in place (which refactors the KKT system)."""
+
+    def __init__(self, options: QPLocalOptions) -> None:
+        self.options = options
+        self._solver: Any = None
+
+    def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, l: np.ndarray, u: np.ndarray) -> None:
+        import osqp  # imported here: the IPOPT path must not need it
+
+        o = self.options
+        self._solver = osqp.OSQP()
+        self._solver.setup(P, q, A, l, u, verbose=False, eps_abs=o.eps_abs, eps_rel=o.eps_rel,
+                           max_iter=o.max_iter, polishing=o.polish, warm_starting=True,
+                           polish_refine_iter=3, check_termination=o.check_termination)
+
+    def update(self, q: np.ndarray, l: np.ndarray, u: np.ndarray, P_data: np.ndarray | None,
+               A_data: np.ndarray | None) -> None:
+        matrices = {k: v for k, v in (("Px", P_data), ("Ax", A_data)) if v is not None}
+        self._solver.update(q=q, l=l, u=u, **matrices)
+
+    def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer:
+        self._solver.warm_start(x=x, y=y if y is not None else np.zeros(self._solver.m))
+        result = self._solver.solve(raise_error=False)
+        info = result.info
+        if result.x is None or result.x[0] is None:  # infeasible: no primal point
+            return QPAnswer(x, np.zeros(self._solver.m), False, str(info.status), int(info.iter),
+                            float(info.solve_time + info.update_time))
+        return QPAnswer(
+            x=np.array(result.x, float), y=np.array(result.y, float),
+            solved=info.status in ("solved", "solved inaccurate"),
+            status=str(info.status), iterations=int(info.iter),
+            solver_time=float(info.solve_time + info.polish_time + info.update_time), exact=info.status_polish == 1,
+        )
+
+
+class LocalQP:
+    """One shape's QP and its solver: set up on the first call, then updated in place."""
+
+    def __init__(self, problem: LocalQPProblem, backend: QPBackend) -> None:
+        self.problem = problem
+        self.backend = backend
+        self._ready = False
+        self._P_key: tuple[float, float] | None = None
+        self._A_data: np.ndarray | None = None
+
+    def solve(
+        self, params: dict[str, Any], lin: Linearisation, start: np.ndarray, y: np.ndarray | None,
+        pinned: np.ndarray | None = None, slack_caps: dict[int, float] | None = None,
+    ) -> QPAnswer:
+        """Solve with certificates ``lin`` from primal ``start`` (and dual ``y``)."""
+        pb = self.problem
+        q = pb.linear_cost(params)
+        lower, upper = pb.bounds(lin, params, pinned, slack_caps)
+        key = (float(params["rho"]), float(params["owner_weight"]))
+        P_data = pb.cost_values(*key)
+        A_data = pb.constraint_values(lin, params)
+        if not self._ready:
+            self.backend.setup(sp.csc_matrix((P_data, pb.P.indices, pb.P.indptr), shape=pb.P.shape), q,
+                               sp.csc_matrix((A_data, pb.A.indices, pb.A.indptr), shape=pb.A.shape), lower, upper)
+            self._ready = True
+        else:
+            same_A = self._A_data is not None and np.array_equal(A_data, self._A_data)
+            self.backend.update(q, lower, upper, P_data if key != self._P_key else None, None if same_A else A_data)
+        self._P_key, self._A_data = key, A_data
+        return self.backend.solve(start, y)
+
+
+def rollout_matrices(s: OCPSettings) -> tuple[np.ndarray, np.ndarray]:
+    """(Phi, Gamma) with vec(X) = Phi x0 + Gamma vec(U) (column-major, states (2d, N+1), inputs
+    (d, N)) for the discrete dynamics: the exact rollout as one product."""
+    A, B = discrete_matrices(s.dim, s.dt, s.discretization)  # type: ignore[arg-type]
+    n, m, N = A.shape[0], B.shape[1], s.horizon
+    Phi = np.zeros(((N + 1) * n, n))
+    Gamma = np.zeros(((N + 1) * n, N * m))
+    power = np.eye(n)
+    for k in range(N + 1):
+        Phi[k * n:(k + 1) * n] = power
+        power = A @ power
+    for k in range(1, N + 1):
+        Gamma[k * n:(k + 1) * n] = A @ Gamma[(k - 1) * n:k * n]
+        Gamma[k * n:(k + 1) * n, (k - 1) * m:k * m] = B
+    return Phi, Gamma
+
+
+def local_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: OCPSettings, copies: int) -> float:
+    """The NLP objective of :func:`swarmpc.formulation.ocp.build_local` at named blocks (X, U,
+    C{c}, A{c}, A_o{n}): tracking cost + consensus terms + kappa * slacks."""
+    d, first = s.dim, s.first_constrained_step
+    X, U, goal = blocks["X"], blocks["U"], np.asarray(params["goal"], float)
+    err = X - goal[:, None]
+    cost = float(np.sum((s.Q @ err[:, :-1]) * err[:, :-1]) + err[:, -1] @ s.Qf @ err[:, -1] + np.sum((s.R @ U) * U))
+    rho, weight = float(params["rho"]), float(params["owner_weight"])
+    diff = X[:d, first:] - np.asarray(params["Z"], float)
+    cost += float(np.sum(np.asarray(params["Y"], float) * diff) + 0.5 * rho * weight * np.sum(diff * diff))
+    if copies:
+        diff = np.array([blocks[f"C{c}"] for c in range(copies)]) - np.array([params[f"Z{c}"] for c in range(copies)])
+        multipliers = np.array([params[f"Y{c}"] for c in range(copies)])
+        cost += float(np.sum(multipliers * diff) + 0.5 * rho * np.sum(diff * diff))
+    slacks = [v for k, v in blocks.items() if k.startswith("A")]
+    return cost + s.kappa * float(sum(np.sum(v) for v in slacks))
+
+
+@dataclass(frozen=True)
+class LoopRecord:
+    """Diagnostics of one certificate loop: rounds, QP iterations, solver-reported and wall time."""
+
+    rounds: int
+    qp_iterations: int
+    solver_time: float
+    wall_time: float
+    converged: bool
+    exact_rounds: int = 0
+    """Rounds whose QP answer was exact on its active set (OSQP: polished)."""
+
+
+class SequentialLocalQP:
+    """One shape's local step: the certificate loop around :class:`LocalQP` (module docstring),
+    then the exact rebuild and check of the plan. Returns :class:`NLPSolution` with the blocks
+    the IPOPT local step returns (X, U, C{c}, L{c}, A{c}, L_o{n}, A_o{n})."""
+
+    def __init__(self, s: OCPSettings, shape: LocalShape, options: QPLocalOptions,
+                 backend: QPBackend | None = None) -> None:
+        self.settings, self.shape, self.options = s, shape, options
+        self.problem = LocalQPProblem(s, shape, options)
+        self.qp = LocalQP(self.problem, backend or OSQPBackend(options))
+        self.certify = Certifier(s)
+        self.transition, self.response = rollout_matrices(s)
+        self.last_record: LoopRecord | None = None
+        self.vector_size = self.problem.layout.size + shape.copies * 2 * s.dim * s.num_constrained + sum(
+            len(g) for _, g in s.obstacles) * s.num_constrained
+        """Length of a solution's ``x_vec``: the QP's primal vector, then the certificates it was
+        linearised with last (as the NLP's vector carries its L blocks)."""
+
+    def _start(
+        self, guess: dict[str, np.ndarray] | np.ndarray, delta: np.ndarray, pinned: np.ndarray | None,
+    ) -> tuple[np.ndarray, Linearisation]:
+        """The QP's start and first certificates: those a solution vector carries, else the best
+        certificates of the guessed blocks."""
+        if isinstance(guess, np.ndarray):
+            size = self.problem.layout.size
+            x = guess[:size].copy()
+            pair, obstacles = self.certify.unpack(guess[size:], self.shape.copies)
+            return x, self.certify.rows(*self.positions(x, pinned), delta, pair, obstacles)
+        x = self.start_point(guess)
+        return x, self.certify(*self.positions(x, pinned), delta)
+
+    def start_point(self, guess: dict[str, np.ndarray]) -> np.ndarray:
+        """A primal vector in this QP's layout from named blocks (X, U, C{c})."""
+        lay, x = self.problem.layout, np.zeros(self.problem.layout.size)
+        x[lay.X] = np.asarray(guess["X"], float)
+        if "U" in guess:
+            x[lay.U] = np.asarray(guess["U"], float)
+        if not self.shape.pinned:
+            for c in range(self.shape.copies):
+                x[lay.C[c]] = np.asarray(guess[f"C{c}"], float)
+        return x
+
+    def positions(self, x: np.ndarray, pinned: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Own constrained positions (d, K) and the copies (n, d, K) of a primal vector."""
+        lay = self.problem.layout
+        return x[lay.own], (pinned if pinned is not None else x[lay.C])
+
+    def solve(
+        self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, pinned: np.ndarray | None = None,
+        slack_caps: dict[int, float] | None = None, y: np.ndarray | None = None,
+    ) -> NLPSolution:
+        """The local step from ``guess`` (blocks or a vector of this layout); ``pinned`` (n, d, K):
+        the copies' fixed positions; ``slack_caps``: pair slot -> upper bound of its slack;
+        ``y``: the QP duals of a previous solve of this shape (warm start).
+
+        If the first QP is infeasible (the guess's certificates ask for a separation the
+        dynamics cannot reach, e.g. a guess that cuts through a pinned neighbour's plan), the
+        loop restarts once from the certificates of each fallback plan (coasting, braking)."""
+        began = time.perf_counter()
+        delta = np.asarray(params["delta"], float)
+        x, lin = self._start(guess, delta, pinned)
+        tally = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
+        answer, x, lin, converged = self._loop(params, x, lin, y, pinned, slack_caps, delta, tally)
+        for plan in self._fallback_plans(params) if not answer.solved and tally[0] == 1 else []:
+            start = x.copy()
+            start[self.problem.layout.X] = plan
+            lin = self.certify(*self.positions(start, pinned), delta)
+            answer, x, lin, converged = self._loop(params, start, lin, None, pinned, slack_caps, delta, tally)
+            if answer.solved:
+                break
+        wall = time.perf_counter() - began
+        self.last_record = LoopRecord(tally[0], tally[1], tally[2], wall, converged, tally[3])
+        if not answer.solved:
+            return self._failed(x, answer, wall, tally[1])
+        return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged)
+
+    def _loop(
+        self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray | None,
+        pinned: np.ndarray | None, slack_caps: dict[int, float] | None, delta: np.ndarray, tally: list,
+    ) -> tuple[QPAnswer, np.ndarray, Linearisation, bool]:
+        """The certificate loop from (x, lin): (last answer, plan, its best certificates, converged)."""
+        converged = False
+        for _ in range(self.options.max_rounds):
+            answer = self.qp.solve(params, lin, x, y, pinned, slack_caps)
+            tally[0] += 1
+            tally[1] += answer.iterations
+            tally[2] += answer.solver_time
+            tally[3] += answer.exact
+            if not answer.solved:
+                break
+            new = self.certify(*self.positions(answer.x, pinned), delta)
+            moved = float(np.max(np.abs(answer.x - x))) if x.size else 0.0
+            x, y = answer.x, answer.y
+            converged = moved <= self.options.plan_tol or self._settled(lin, new, *self.positions(x, pinned))
+            lin = new
+            if converged:
+                break
+        return answer, x, lin, converged
+
+    def _fallback_plans(self, params: dict[str, Any]) -> list[np.ndarray]:
+        """State trajectories (2d, N+1) to take certificates from when the guess's fail: the
+        measured state coasting (no input), and braking as hard as the input box allows."""
+        s, d = self.settings, self.settings.dim
+        state = np.asarray(params["x0"], float)
+        coast, _ = self.rebuild(state, np.zeros((d, s.horizon)))
+        brake = np.empty_like(coast)
+        brake[:, 0] = state
+        A, B = discrete_matrices(d, s.dt, s.discretization)  # type: ignore[arg-type]
+        for k in range(s.horizon):
+            u = -brake[d:, k] / s.dt
+            if s.accel is not None:
+                u = np.clip(u, -s.accel, s.accel)
+            brake[:, k + 1] = A @ brake[:, k] + B @ u
+        return [coast, brake]
+
+    def _settled(self, old: Linearisation, new: Linearisation, own: np.ndarray, copies: np.ndarray) -> bool:
+        """True when the certificates of the rows the last QP held at (or near) their bound
+        changed less than the tolerance. Rows it left clear stay clear under the new
+        certificates (their exact value can only be larger), so only these can move the answer."""
+        o, s = self.options, self.settings
+        bound = s.d_min + o.margin + o.active_band
+        pair = np.einsum("ndk,ndk->nk", old.pair_normal, own[None] - copies) - old.pair_constant
+        obstacle = np.einsum("odk,dk->ok", old.obstacle_normal, own) - old.obstacle_constant
+        change = 0.0
+        for old_n, new_n, value in ((old.pair_normal, new.pair_normal, pair),
+                                    (old.obstacle_normal, new.obstacle_normal, obstacle)):
+            near = value <= bound
+            if np.any(near):
+                change = max(change, float(np.max(np.abs(old_n - new_n) * near[:, None, :])))
+        return change <= o.certificate_tol
+
+    def _failed(self, x: np.ndarray, answer: QPAnswer, wall: float, iterations: int) -> NLPSolution:
+        blocks = {"X": x[self.problem.layout.X], "U": x[self.problem.layout.U]}
+        return NLPSolution(x=blocks, x_vec=np.zeros(0), lam_x=np.zeros(0), lam_g=np.zeros(self.problem.A.shape[0]),
+                           cost=np.inf, success=False, status=f"qp_{answer.status.replace(' ', '_')}",
+                           iterations=iterations, solve_time=wall)
+
+    def rebuild(self, state: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inputs (d, N) clipped to their box and the states (2d, N+1) they drive from ``state``:
+        the applied plan meets the dynamics and the input limits exactly."""
+        s = self.settings
+        U = np.clip(inputs, -s.accel[:, None], s.accel[:, None]) if s.accel is not None else inputs.copy()
+        X = (self.transition @ state + self.response @ U.ravel(order="F")).reshape(s.horizon + 1, 2 * s.dim).T
+        return X, U
+
+    def _result(
+        self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray, pinned: np.ndarray | None,
+        wall: float, rounds: int, converged: bool,
+    ) -> NLPSolution:
+        """The rebuilt plan, certified by the last round's certificates (their values at the
+        rebuilt positions are lower bounds on the distances, so a plan they clear is clear),
+        or by the best certificates of the rebuilt plan if those do not clear it."""
+        s, lay, n = self.settings, self.problem.layout, self.shape.copies
+        X, U = self.rebuild(np.asarray(params["x0"], float), x[lay.U])
+        own = X[: s.dim, s.first_constrained_step:]
+        copies = pinned if pinned is not None else x[lay.C]
+        delta = np.asarray(params["delta"], float)
+        final = self.certify.rows(own, copies, delta, lin.pair_lam, lin.obstacle_lam)
+        if self.violation(X, final, params) > 0.0:
+            final = self.certify(own, copies, delta)
+        blocks = self._blocks(X, U, copies, final)
+        violation = self.violation(X, final, params)
+        status = "solved" if converged else "max_rounds"
+        if violation > 0.0:
+            status = f"unsafe_{violation:.1e}"
+        return NLPSolution(
+            x=blocks, x_vec=np.concatenate([x, self.certify.pack(lin)]), lam_x=np.zeros(0), lam_g=y,
+            cost=local_objective(blocks, params, s, n), success=violation <= 0.0, status=status,
+            iterations=rounds, solve_time=wall,
+        )
+
+    def _blocks(self, X: np.ndarray, U: np.ndarray, copies: np.ndarray, lin: Linearisation) -> dict[str, np.ndarray]:
+        """The NLP's named blocks: plan, copies, certificates and the least slacks they need."""
+        s = self.settings
+        blocks: dict[str, np.ndarray] = {"X": X, "U": U}
+        for c in range(self.shape.copies):
+            blocks[f"C{c}"] = copies[c]
+            blocks[f"L{c}"] = lin.pair_lam[c]
+            if self.shape.pair_collision == "soft":
+                blocks[f"A{c}"] = np.maximum(s.d_min - lin.pair_value[c], 0.0)[None, :]
+        for o, lam in enumerate(lin.obstacle_lam):
+            blocks[f"L_o{o}"] = lam
+            if s.collision == "soft":
+                blocks[f"A_o{o}"] = np.maximum(s.d_min - lin.obstacle_value[o], 0.0)[None, :]
+        return blocks
+
+    def violation(self, X: np.ndarray, lin: Linearisation, params: dict[str, Any]) -> float:
+        """Largest shortfall of a plan against the hard claims (0 when all hold): separations
+        (>= d_min) by the values of dual-feasible certificates (lower bounds on the distances),
+        planes, workspace and speed by direct evaluation. Inputs are within their box and the
+        states follow the dynamics by construction (:meth:`rebuild`)."""
+        s, d, first = self.settings, self.settings.dim, self.settings.first_constrained_step
+        gaps = [0.0]
+        if self.shape.pair_collision == "hard" and lin.pair_value.size:
+            gaps.append(float(np.max(s.d_min - lin.pair_value)))
+        if s.collision == "hard" and lin.obstacle_value.size:
+            gaps.append(float(np.max(s.d_min - lin.obstacle_value)))
+        own = X[:d, first:]
+        for p in range(self.shape.planes):
+            gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
+        if s.lower is not None and s.upper is not None:
+            gaps += [float(np.max(s.lower[:, None] - own)), float(np.max(own - s.upper[:, None]))]
+        if s.speed is not None:
+            gaps.append(float(np.max(np.linalg.norm(X[d:, 1:], axis=0)) - s.speed))
+        return max(gaps)
+
+
+class QPLocalLadder:
+    """The QP local steps of one agent set, one per shape, built on first use: the interface of
+    :class:`swarmpc.solvers.admm.LocalSolverLadder` (``solve(params, guess, fixed, copies=...,
+    planes=..., duals=...) -> NLPSolution``) so that it can stand in for it.
+
+    Only free copies are supported (``dynamic_copies=False``, the default ADMM configuration).
+    ``fixed`` may pin every copy (``C{c}``, a repair pass: the copies become constants) and the
+    pair slacks (``A{c}``, an upper bound; the hard form has none); other blocks are refused.
+    ``duals``: (unused, QP multipliers) of the previous solve of the same shape. A lock guards
+    the built solvers (stateful OSQP objects) under threads; pickling keeps the recipe only and
+    a worker process builds its own.
+    """
+
+    def __init__(self, settings: OCPSettings, pair_collision: str | None = None,
+                 options: QPLocalOptions | None = None,
+                 backend: Callable[[QPLocalOptions], QPBackend] = OSQPBackend) -> None:
+        self.settings = settings
+        self.pair_collision = pair_collision or settings.collision
+        self.options = options or QPLocalOptions()
+        self.backend = backend
+        self._built: dict[LocalShape, SequentialLocalQP] = {}
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"settings": self.settings, "pair_collision": self.pair_collision, "options": self.options,
+                "backend": self.backend}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(**state)  # type: ignore[misc]
+
+    def stepper(self, shape: LocalShape) -> SequentialLocalQP:
+        """The built local step of ``shape`` (built now on first use)."""
+        if shape not in self._built:
+            self._built[shape] = SequentialLocalQP(self.settings, shape, self.options, self.backend(self.options))
+        return self._built[shape]
+
+    def solve(
+        self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
+        *, copies: int, planes: int = 0, duals: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> NLPSolution:
+        """One local step; see the class docstring for ``fixed`` and ``duals``."""
+        fixed = fixed or {}
+        unknown = [key for key in fixed if key[:1] not in ("C", "A") or not key[1:].isdigit()]
+        if unknown:
+            raise NotImplementedError(f"the QP local step cannot pin {unknown} (free copies and pair slacks only)")
+        pinned = None
+        if any(key.startswith("C") for key in fixed):
+            pinned = np.array([np.asarray(fixed[f"C{c}"], float) for c in range(copies)])
+            pinned = pinned.reshape(copies, self.settings.dim, self.settings.num_constrained)
+        caps = {c: float(np.max(fixed[f"A{c}"])) for c in range(copies)
+                if f"A{c}" in fixed and self.pair_collision == "soft"}
+        with self._lock:
+            shape = LocalShape(copies, planes, pinned is not None, self.pair_collision)
+            stepper = self.stepper(shape)
+            if isinstance(guess, np.ndarray) and guess.size != stepper.vector_size:
+                guess = self._sibling_blocks(shape, guess, params)
+            y = duals[1] if duals is not None and duals[1].size == stepper.problem.A.shape[0] else None
+            return stepper.solve(params, guess, pinned, caps, y)
+
+    def _sibling_blocks(self, shape: LocalShape, vector: np.ndarray, params: dict[str, Any]) -> dict[str, np.ndarray]:
+        """Named blocks of a solution vector of the same problem with the copies free instead of
+        pinned or the other way round (a repair pass that starts from the agent's last answer)."""
+        sibling = self._built.get(LocalShape(shape.copies, shape.planes, not shape.pinned, shape.pair_collision))
+        if sibling is None or vector.size != sibling.vector_size:
+            raise ValueError("a guess vector must come from a QP local step of the same problem")
+        lay = sibling.problem.layout
+        blocks = {"X": vector[lay.X], "U": vector[lay.U]}
+        for c in range(shape.copies):
+            blocks[f"C{c}"] = np.asarray(params[f"Z{c}"], float) if sibling.shape.pinned else vector[lay.C[c]]
+        return blocks
