@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from conftest import run_cli
 from swarmpc.cli import app, main
-from swarmpc.config import MAX_SEED, Scenario, ScenarioError, scenario_from_dict
+from swarmpc.config import MAX_MAGNITUDE, MAX_SEED, Scenario, ScenarioError, scenario_from_dict
 from swarmpc.scenarios import BUILTINS, builtin_parameters
 
 PREFIX = "swarmpc: error: "
@@ -167,7 +167,7 @@ def invalid(option: str, value: str) -> bool:
         number = int(value) if kind is int else float(value)
     except ValueError:
         return True
-    if not math.isfinite(number):
+    if not math.isfinite(number) or (kind is not int and abs(number) > MAX_MAGNITUDE):
         return True
     return option in IN_RANGE and not IN_RANGE[option](number)
 
