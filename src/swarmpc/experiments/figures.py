@@ -23,7 +23,7 @@ from swarmpc.plots import animate, make_trajectory_figure
 from swarmpc.simulation.rundata import RunData, load_run
 
 if TYPE_CHECKING:
-    from swarmpc.experiments.reproduce import ReproducePlan, RunRecord
+    from swarmpc.experiments.plan import ReproducePlan, RunRecord
 
 PathLike = str | os.PathLike[str]
 

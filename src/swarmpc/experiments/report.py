@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from swarmpc.experiments.reproduce import REPORT, ReproducePlan, RunRecord
+from swarmpc.experiments.plan import REPORT, ReproducePlan, RunRecord
 
 Cell = Callable[[RunRecord], str]
 DOCS = Path(__file__).resolve().parents[3] / "docs"
