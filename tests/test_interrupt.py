@@ -84,7 +84,7 @@ def test_package_import_is_light():
 
 def test_an_import_error_raised_by_a_ctrl_c_counts_as_the_ctrl_c():
     """A Ctrl-C inside a compiled module's initialisation surfaces as that module's import error."""
-    from swarmpc._launch import caused_by_interrupt
+    from swarmpc._interrupts import caused_by_interrupt
 
     def failing_import(chain: str) -> BaseException:
         try:

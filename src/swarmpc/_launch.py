@@ -6,23 +6,7 @@ from __future__ import annotations
 
 import sys
 
-INTERRUPTED = 130
-
-
-def caused_by_interrupt(error: BaseException) -> bool:
-    """Whether ``error`` is a Ctrl-C or was raised while handling one.
-
-    A Ctrl-C that lands inside a compiled extension's initialisation comes out as that module's
-    import error, with the ``KeyboardInterrupt`` as its cause or context.
-    """
-    seen: set[int] = set()
-    current: BaseException | None = error
-    while current is not None and id(current) not in seen:
-        if isinstance(current, KeyboardInterrupt):
-            return True
-        seen.add(id(current))
-        current = current.__cause__ or current.__context__
-    return False
+from swarmpc._interrupts import INTERRUPTED, caused_by_interrupt
 
 
 def main() -> None:
