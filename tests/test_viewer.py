@@ -254,11 +254,11 @@ def test_frames_follow_the_trajectory(runs, key):
             if meta["role"] == "agent":
                 coords = [tr.x[0], tr.y[0]] + ([tr.z[0]] if d == 3 else [])
                 np.testing.assert_allclose(coords, states[k, i, :d], atol=1e-4)
-            if meta["role"] == "box":
+            if meta["role"] == "box":  # the body: half-size delta / 2 (the default body) around the agent
                 for a, values in enumerate([tr.x, tr.y] + ([tr.z] if d == 3 else [])):
                     vals = [v for v in values if v is not None]
-                    np.testing.assert_allclose(min(vals), states[k, i, a] - delta[a], atol=1e-3)
-                    np.testing.assert_allclose(max(vals), states[k, i, a] + delta[a], atol=1e-3)
+                    np.testing.assert_allclose(min(vals), states[k, i, a] - delta[a] / 2, atol=1e-3)
+                    np.testing.assert_allclose(max(vals), states[k, i, a] + delta[a] / 2, atol=1e-3)
             if meta["role"] == "trail":
                 assert len(tr.x) == k + 1
                 np.testing.assert_allclose([tr.x[-1], tr.y[-1]], states[k, i, :2], atol=1e-3)

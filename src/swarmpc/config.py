@@ -28,6 +28,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_core import PydanticSerializationError
 
+from swarmpc.model.dynamics import DoubleIntegrator, lqr_terminal_weight, riccati_weights_problem
+
 Number = float
 Matrix = list[list[float]]
 ScalarOrMatrix = float | Matrix
@@ -177,11 +179,65 @@ class _Frozen(BaseModel):
                     raise ValueError(problem)
         return data
 class Weights(_Frozen):
-    """Quadratic cost weights: scalars (times identity) or full matrices."""
+    """Quadratic cost weights: scalars (times identity) or full matrices.
+
+    ``Qf`` may also be ``lqr``: the cost-to-go of the infinite-horizon LQR of the agent's own
+    discretised dynamics with Q and R (:meth:`Scenario.matrix`), with which the MPC is the LQR
+    wherever no constraint binds, whatever the horizon.
+    """
 
     Q: ScalarOrMatrix = 0.1
     R: ScalarOrMatrix = 1.0
-    Qf: ScalarOrMatrix = 1.0
+    Qf: ScalarOrMatrix | Literal["lqr"] = Field(
+        default=1.0,
+        description="Terminal state weight: a scalar ≥ 0 (times identity), a symmetric PSD 2·dim × 2·dim matrix, "
+        "or `lqr`: the solution P of the discrete algebraic Riccati equation of the agent's own double "
+        "integrator (this `dt` and `discretization`) with Q and R, so the MPC is the infinite-horizon LQR "
+        "wherever no constraint binds (needs R > 0 and a Q that weighs every position).",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _qf_number_matrix_or_lqr(cls, data: Any) -> Any:
+        """``Qf`` is numbers (checked as strictly as every numeric field) or exactly ``lqr``."""
+        value = data.get("Qf") if isinstance(data, dict) else None
+        if isinstance(value, str):
+            if value != "lqr":
+                raise ValueError(f"Qf: expected a number >= 0, a matrix or lqr, got {short_repr(value)}")
+        elif value is not None:
+            problem = _first_problem(value, float, "Qf")
+            if problem is not None:
+                raise ValueError(problem)
+        return data
+
+    @model_validator(mode="after")
+    def _lqr_solvable(self) -> Weights:
+        """With ``Qf: lqr``, the Riccati equation must have a stabilising solution for Q and R
+        (checked here when Q and R are well formed; their shapes and signs are checked with dim)."""
+        if self.Qf != "lqr":
+            return self
+        # scalar weights act alike on every axis, so one axis (size 2) stands for any dim
+        size = len(self.Q) if isinstance(self.Q, list) else 2 * len(self.R) if isinstance(self.R, list) else 2
+        Q, R = self._square(self.Q, size), self._square(self.R, size // 2)
+        if Q is None or R is None or size == 0 or size % 2:
+            return self
+        if not (np.allclose(Q, Q.T) and np.allclose(R, R.T) and np.min(np.linalg.eigvalsh(Q)) >= 0):
+            return self
+        if not isinstance(self.R, list) and self.R <= 0:  # "weights.R: must be > 0" comes with dim
+            return self
+        problem = riccati_weights_problem(Q, R)
+        if problem is not None:
+            raise ValueError(f"Qf: lqr has no Riccati solution for these weights: {problem}")
+        return self
+
+    @staticmethod
+    def _square(value: ScalarOrMatrix, size: int) -> np.ndarray | None:
+        """A weight as a ``size`` x ``size`` matrix; None when it is a matrix of another shape."""
+        if not isinstance(value, list):
+            return float(value) * np.eye(size)
+        if len(value) != size or any(not isinstance(row, list) or len(row) != size for row in value):
+            return None
+        return np.asarray(value, float)
 
 
 class Workspace(_Frozen):
@@ -280,10 +336,25 @@ class Obstacle(_Frozen):
 
 
 class Agent(_Frozen):
-    """An agent's start and goal: a position, or a full state [position, velocity]."""
+    """An agent's start and goal (a position, or a full state [position, velocity]) and its body."""
 
     start: list[float]
     goal: list[float]
+    body: ScalarOrVector | None = Field(
+        default=None,
+        description="Half-size [m] of the agent's body, an axis-aligned box around its position: a scalar or "
+        "`dim` values, each > 0. Two agents keep their bodies apart (centres at least b_i + b_j apart on some "
+        "axis) and obstacles keep the whole body out. `null`: Δ/2 on every axis, so two default bodies "
+        "keep exactly Δ apart.",
+    )
+
+    @field_validator("body")
+    @classmethod
+    def _positive_body(cls, value: ScalarOrVector | None) -> ScalarOrVector | None:
+        values = [value] if isinstance(value, (int, float)) else (value or [])
+        if any(v <= 0 for v in values):
+            raise ValueError(f"every half-size must be > 0, got {short_repr(value)}")
+        return value
 
 
 class SolverConfig(_Frozen):
@@ -375,6 +446,65 @@ class Disturbance(_Frozen):
         return self.measurement_position_std > 0 or self.measurement_velocity_std > 0
 
 
+PLANT_DEFAULTS: typing.Mapping[str, float] = types.MappingProxyType(
+    {"physics_dt": 0.002, "drag": 0.0, "lag_s": 0.0, "mass": 1.0}
+)
+"""What a ``plant: {type: mujoco}`` section takes for the physics fields it leaves out."""
+
+
+class PlantConfig(_Frozen):
+    """What the closed loop applies the inputs to: the nominal model itself or a physics engine.
+
+    ``double_integrator`` is the planner's own model (with the ``disturbance`` block's noise);
+    ``mujoco`` simulates every agent as a rigid body in MuJoCo, pushed by force actuators, so the
+    planner meets a plant it does not model exactly (continuous motion, drag, actuator lag). The
+    physics fields belong to ``mujoco`` only: under ``double_integrator`` they stay null, and with
+    ``mujoco`` a field left out takes its value from :data:`PLANT_DEFAULTS`.
+    """
+
+    type: Literal["double_integrator", "mujoco"] = Field(
+        default="double_integrator",
+        description="`double_integrator`: the planner's own model, exactly (plus `disturbance` noise); "
+        "`mujoco`: each agent a rigid box (its `body`, default half-size Δ/2) in MuJoCo, driven by force "
+        "actuators",
+    )
+    physics_dt: float | None = Field(
+        default=None, ge=1e-5,
+        description="mujoco only: largest physics step [s] (default 0.002); dt is split into equal "
+        "substeps no longer than this",
+    )
+    drag: float | None = Field(
+        default=None, ge=0,
+        description="mujoco only: linear drag rate [1/s] (default 0): a force of -mass * drag * velocity",
+    )
+    lag_s: float | None = Field(
+        default=None, ge=0,
+        description="mujoco only: time constant [s] of a first-order lag between the commanded and the "
+        "applied acceleration (default 0: none)",
+    )
+    mass: float | None = Field(
+        default=None, gt=0,
+        description="mujoco only: mass of each agent's body [kg] (default 1); the actuators apply "
+        "mass * commanded acceleration",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _mujoco_defaults(cls, data: Any) -> Any:
+        """Fill the physics fields a ``mujoco`` section leaves out (or sets to null)."""
+        if isinstance(data, dict) and data.get("type") == "mujoco":
+            return {**data, **{k: v for k, v in PLANT_DEFAULTS.items() if data.get(k) is None}}
+        return data
+
+    @model_validator(mode="after")
+    def _physics_only_with_mujoco(self) -> PlantConfig:
+        if self.type != "mujoco":
+            for name in PLANT_DEFAULTS:
+                if getattr(self, name) is not None:
+                    raise ValueError(f"{name}: only with plant.type: mujoco (got {self.type})")
+        return self
+
+
 class Scenario(_Frozen):
     """A complete, validated multi-agent scenario (design.md section 8)."""
 
@@ -386,7 +516,12 @@ class Scenario(_Frozen):
     dim: int = 2
     dt: float = 0.1
     horizon: int = Field(default=10, ge=2, le=MAX_HORIZON, description="MPC horizon N in steps.")
-    delta: ScalarOrVector = 0.3
+    delta: ScalarOrVector = Field(
+        default=0.3,
+        description="Δ [m]: how far apart two agents' centres keep per axis with default bodies (each agent's "
+        "`body` defaults to Δ/2 per axis), a scalar or one value per axis; > 0. Agents i and j collide when "
+        "their bodies overlap: |p_i − p_j| < b_i + b_j on every axis (< Δ with default bodies).",
+    )
     collision: Literal["hard", "soft"] = "hard"
     d_min: float = 0.05
     kappa: float = 1000.0
@@ -401,18 +536,22 @@ class Scenario(_Frozen):
     obstacles: list[Obstacle] = Field(
         default=[],
         description=f"Static convex obstacles (at most {MAX_OBSTACLES}). Each entry has exactly one of `box` or "
-        "`polytope`; an agent's position (its centre, not its Δ box) keeps d_min from it. Starts and goals "
-        "must lie outside.",
+        "`polytope`; an agent's whole body keeps d_min from it (the obstacle is grown by the body's box). "
+        "Starts and goals must keep the body outside.",
     )
     agents: list[Agent] = Field(
-        description=f"The agents (1 to {MAX_AGENTS}). Starts (and goals) must be pairwise outside each other's "
-        "Δ box.",
+        description=f"The agents (1 to {MAX_AGENTS}). Their bodies must not overlap at the starts (nor at the "
+        "goals).",
     )
     solver: SolverConfig = SolverConfig()
     stop: StopConfig = StopConfig()
     disturbance: Disturbance = Field(
         default=Disturbance(),
         description="process/measurement noise (seeded by `seed`) and planner tightening; default off",
+    )
+    plant: PlantConfig = Field(
+        default=PlantConfig(),
+        description="what the inputs drive: the ideal double integrator (default) or a MuJoCo physics model",
     )
 
     @field_validator("name")
@@ -494,8 +633,16 @@ class Scenario(_Frozen):
 
     @property
     def delta_vector(self) -> np.ndarray:
-        """Half-size of the box around each agent, one entry per axis."""
+        """Δ per axis: the separation of two default bodies' centres."""
         return np.broadcast_to(np.asarray(self.delta, float), (self.dim,)).copy()
+
+    @property
+    def bodies(self) -> np.ndarray:
+        """(M, d) half-size of each agent's body per axis: its ``body``, else Δ/2 (halving is exact,
+        so two default bodies give b_i + b_j == Δ bit for bit)."""
+        default = self.delta_vector / 2.0
+        return np.array([default if a.body is None else np.broadcast_to(np.asarray(a.body, float), (self.dim,))
+                         for a in self.agents])
 
     def start_states(self) -> np.ndarray:
         """(M, 2d) start states (zero velocity where only a position is given)."""
@@ -516,8 +663,14 @@ class Scenario(_Frozen):
         return points.min(axis=0) - 1.0, points.max(axis=0) + 1.0
 
     def matrix(self, which: Literal["Q", "R", "Qf"]) -> np.ndarray:
+        """The weight ``which`` as a matrix: a scalar times identity, a matrix as given, and
+        ``Qf: lqr`` as the Riccati cost-to-go of the agent's double integrator with this ``dt``
+        and ``discretization`` and the Q and R above (:func:`swarmpc.model.dynamics.lqr_terminal_weight`)."""
         size = self.dim if which == "R" else self.state_dim
         value = getattr(self.weights, which)
+        if value == "lqr":
+            model = DoubleIntegrator(self.dim, self.dt, self.discretization)
+            return lqr_terminal_weight(model, self.matrix("Q"), self.matrix("R"))
         if isinstance(value, (int, float)):
             return float(value) * np.eye(size)
         return np.asarray(value, float)
@@ -574,6 +727,8 @@ def _size_errors(scn: Scenario) -> list[str]:
 
 def _weight_error(which: str, value: ScalarOrMatrix, size: int) -> str | None:
     """What is wrong with the weight ``which`` for a ``size`` x ``size`` matrix, if anything."""
+    if isinstance(value, str):  # Qf: lqr, checked by Weights itself
+        return None
     if not isinstance(value, list):
         if value < 0:
             return f"weights.{which}: must be >= 0"
@@ -623,6 +778,8 @@ def _shape_errors(scn: Scenario) -> list[str]:
                     f"agents[{n}].{field}: expected {d} (position) or {2 * d} (state) values "
                     f"for dim {d}, got {size}"
                 )
+        if isinstance(agent.body, list) and len(agent.body) != d:
+            errors.append(f"agents[{n}].body: expected a scalar or {d} values for dim {d}, got {len(agent.body)}")
     return errors
 
 
@@ -631,43 +788,53 @@ def _consistency_errors(scn: Scenario) -> list[str]:
     errors = _shape_errors(scn)
     if errors:
         return errors[:1]
+    bodies = scn.bodies
     for field in ("start", "goal"):
         positions = np.array([_full_state(getattr(a, field), scn.dim)[: scn.dim] for a in scn.agents])
-        error = _overlap_error(positions, scn.delta_vector, field, scn.delta) or _placement_error(scn, positions, field)
+        error = _overlap_error(positions, bodies, field) or _placement_error(scn, positions, bodies, field)
         if error is not None:
             return [error]
     return []
 
 
-def _overlap_error(positions: np.ndarray, delta: np.ndarray, field: str, given: ScalarOrVector) -> str | None:
-    """The first pair of positions within delta of each other on every axis, if any."""
+def _overlap_error(positions: np.ndarray, bodies: np.ndarray, field: str) -> str | None:
+    """The first pair of agents whose bodies overlap at ``positions``, if any: centres closer than
+    b_i + b_j (Δ with default bodies) on every axis."""
     for i in range(len(positions) - 1):  # one row of pairs at a time: O(M) numpy calls
         gaps = np.abs(positions[i + 1 :] - positions[i])
-        inside = np.flatnonzero(np.all(gaps < delta, axis=1))
+        reach = bodies[i + 1 :] + bodies[i]
+        inside = np.flatnonzero(np.all(gaps < reach, axis=1))
         if inside.size:
-            j = i + 1 + int(inside[0])
-            return (f"agents[{j}].{field}: within delta of agents[{i}].{field} "
-                    f"(inf-norm gap {np.max(gaps[inside[0]]):.3g} < delta {given})")
+            k = int(inside[0])
+            j = i + 1 + k
+            return (f"agents[{j}].{field}: within delta of agents[{i}].{field}, their bodies overlap "
+                    f"(gaps {_rounded(gaps[k])} < b_{i} + b_{j} = {_rounded(reach[k])} on every axis)")
     return None
 
 
-def _placement_error(scn: Scenario, positions: np.ndarray, field: str) -> str | None:
-    """The first agent whose position lies outside the workspace or inside an obstacle, if any
-    (one numpy call per obstacle, not per agent and obstacle)."""
+def _rounded(values: np.ndarray) -> list[float]:
+    return [float(f"{v:.3g}") for v in values]
+
+
+def _placement_error(scn: Scenario, positions: np.ndarray, bodies: np.ndarray, field: str) -> str | None:
+    """The first agent whose centre lies outside the workspace or whose body reaches into an
+    obstacle (the obstacle grown by that agent's body contains its centre), if any; one numpy
+    call per obstacle, not per agent and obstacle. The workspace bounds centres, as in the OCPs."""
     outside = np.zeros(len(positions), bool)
     if scn.workspace is not None:
         lo, hi = np.asarray(scn.workspace.lower), np.asarray(scn.workspace.upper)
         outside = np.any((positions < lo) | (positions > hi), axis=1)
     inside = np.zeros((len(positions), len(scn.obstacles)), bool)
     for k, (G, g) in enumerate(scn.obstacle_halfspaces()):
-        inside[:, k] = np.all(positions @ G.T <= g, axis=1)
+        inside[:, k] = np.all(positions @ G.T <= g + bodies @ np.abs(G).T, axis=1)
     bad = np.flatnonzero(outside | inside.any(axis=1))
     if not bad.size:
         return None
     n = int(bad[0])
     if outside[n]:
         return f"agents[{n}].{field}: {positions[n].tolist()} is outside the workspace"
-    return f"agents[{n}].{field}: {positions[n].tolist()} is inside obstacles[{int(np.argmax(inside[n]))}]"
+    return (f"agents[{n}].{field}: the body (half-size {_rounded(bodies[n])}) at {positions[n].tolist()} "
+            f"reaches inside obstacles[{int(np.argmax(inside[n]))}]")
 
 
 _FIELD_PREFIX = re.compile(r"^[A-Za-z_][\w\[\].]*: ")

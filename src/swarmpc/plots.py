@@ -3,8 +3,12 @@
 Reads what a run writes (``trajectory.npz``, ``summary.json``, ``scenario.yaml`` and, for ADMM
 runs, ``admm.npz``) through the package's one reader, :func:`swarmpc.simulation.rundata.load_run`
 (re-exported here with :class:`RunData` and :class:`RunDataError`), and draws the paper's
-figures: the trajectories with the agents' boxes and the obstacles (Fig. 3), the ADMM residuals
+figures: the trajectories with the agents' bodies and the obstacles (Fig. 3), the ADMM residuals
 per iteration (Fig. 4) and an animation.
+
+Each agent is drawn as its body: the box of half-size b_i around its position (``RunData.bodies``).
+Two drawn bodies overlap exactly when the run counts the pair as a collision (|p_i - p_j| < b_i +
+b_j on every axis), so a picture never shows an overlap the summary does not count, nor hides one.
 
 Only the object-oriented matplotlib API is used (:class:`~matplotlib.figure.Figure` with an Agg
 canvas), never :mod:`matplotlib.pyplot`: no window opens, no backend is switched and no figure
@@ -34,7 +38,7 @@ from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 from swarmpc import palette
 from swarmpc.config import Scenario
-from swarmpc.model.geometry import count_collisions, inf_separation_ratio
+from swarmpc.model.geometry import body_separation_ratio, count_body_collisions
 from swarmpc.simulation.rundata import AdmmResiduals as AdmmResiduals
 from swarmpc.simulation.rundata import MissingRunFileError as MissingRunFileError
 from swarmpc.simulation.rundata import RunData as RunData
@@ -52,6 +56,9 @@ OBSTACLE_COLOR = "0.55"
 AXIS_NAMES = ("x", "y", "z")
 GID_OBSTACLE = "obstacle"
 GID_TOLERANCE = "tolerance"
+GID_BODY = "body"
+"""Body patches carry the gid ``body:<agent>:<step>`` (snapshots) or ``body:<agent>`` (animation)."""
+BODY_LABEL = "bodies (half-size b)"
 
 
 class AnimationWriterError(RuntimeError):
@@ -225,8 +232,9 @@ def _view_limits(run: RunData) -> tuple[np.ndarray, np.ndarray]:
     lower, upper = _scenario(run).bounds()
     pos = run.positions.reshape(-1, run.dim)
     goals = run.goals[:, : run.dim]
-    lower = np.minimum(lower, np.minimum(pos.min(axis=0), goals.min(axis=0)) - run.delta)
-    upper = np.maximum(upper, np.maximum(pos.max(axis=0), goals.max(axis=0)) + run.delta)
+    reach = run.body_half_sizes.max(axis=0)
+    lower = np.minimum(lower, np.minimum(pos.min(axis=0), goals.min(axis=0)) - reach)
+    upper = np.maximum(upper, np.maximum(pos.max(axis=0), goals.max(axis=0)) + reach)
     pad = 0.04 * (upper - lower).max()
     return lower - pad, upper + pad
 
@@ -250,12 +258,13 @@ def _headline(run: RunData) -> str:
     collision = s.get("collision", _scenario(run).collision)
     first = (f"{_plain(run.name)}  ({_plain(method)}, {_plain(collision)} constraints, "
              f"{run.num_agents} agents, {run.dim}D)")
-    ratio = inf_separation_ratio(run.positions, run.delta).min() if run.num_agents > 1 else np.inf
+    bodies = run.body_half_sizes
+    ratio = body_separation_ratio(run.positions, bodies).min() if run.num_agents > 1 else np.inf
     collisions = s.get("collisions")
     if collisions is None:
-        collisions = count_collisions(run.positions, run.delta)
+        collisions = count_body_collisions(run.positions, bodies)
     sep = f"{ratio:.2f}" if np.isfinite(ratio) else "n/a"
-    parts = [f"collisions: {_plain(collisions)}", rf"min $\|p_i - p_j\|_\infty/\delta$ = {sep}"]
+    parts = [f"collisions: {_plain(collisions)}", rf"min $|p_i - p_j| / (b_i + b_j)$ = {sep}"]
     reached = s.get("reached")
     if isinstance(reached, list):
         parts.append(f"reached: {sum(bool(r) for r in reached)}/{run.num_agents}")
@@ -327,15 +336,16 @@ def _box_patch(center: np.ndarray, half: np.ndarray, color: Any, alpha: float, *
 def _draw_paths_planar(
     ax: Axes, run: RunData, axes: tuple[int, int], colors: list[Any], snapshots: int
 ) -> None:
-    """Paths, start circles, goal stars and snapshot boxes of every agent, projected on ``axes``."""
+    """Paths, start circles, goal stars and snapshot bodies of every agent, projected on ``axes``."""
     pos = run.positions[:, :, list(axes)]
     goals = run.goals[:, list(axes)]
-    half = run.delta[list(axes)]
+    halves = run.body_half_sizes[:, list(axes)]
     instants = _even_indices(run.num_steps + 1, snapshots)
     alphas = np.linspace(0.10, 0.28, max(len(instants), 1))
     for i, color in enumerate(colors):
         for k, alpha in zip(instants, alphas):
-            ax.add_patch(_box_patch(pos[k, i], half, color, float(alpha), zorder=2))
+            ax.add_patch(_box_patch(pos[k, i], halves[i], color, float(alpha), zorder=2,
+                                    gid=f"{GID_BODY}:{i}:{int(k)}"))
         ax.plot(pos[:, i, 0], pos[:, i, 1], color=color, linewidth=1.6, zorder=3, label=f"agent {i}")
         ax.plot(*pos[0, i], "o", color=color, markeredgecolor="k", markersize=7, zorder=4)
         ax.plot(*goals[i], "*", color=color, markeredgecolor="k", markersize=13, zorder=4)
@@ -348,7 +358,7 @@ def _legend_handles(run: RunData, colors: list[Any], obstacles: bool) -> list[An
     handles += [
         Line2D([], [], marker="o", linestyle="", color="0.8", markeredgecolor="k", label="start"),
         Line2D([], [], marker="*", linestyle="", color="0.8", markeredgecolor="k", markersize=12, label="goal"),
-        Patch(facecolor="0.6", edgecolor="0.6", alpha=0.3, label=r"box $\pm\delta$ (snapshots)"),
+        Patch(facecolor="0.6", edgecolor="0.6", alpha=0.3, label=f"{BODY_LABEL}, snapshots"),
     ]
     if obstacles:
         handles.append(Patch(facecolor=OBSTACLE_COLOR, edgecolor="0.3", label="obstacle"))
@@ -390,7 +400,7 @@ def make_trajectory_figure(run: RunData, snapshots: int = 4) -> Figure:
     run : RunData
         A loaded run.
     snapshots : int
-        Number of evenly spaced instants (first and last included) at which the agents' boxes
+        Number of evenly spaced instants (first and last included) at which the agents' bodies
         are drawn.
 
     Returns
@@ -441,7 +451,7 @@ def plot_trajectories(run: RunData, path: PathLike, snapshots: int = 4) -> Path:
     path : str or PathLike
         Output PNG file.
     snapshots : int
-        Number of instants at which the agents' boxes are drawn.
+        Number of instants at which the agents' bodies are drawn.
 
     Returns
     -------
@@ -554,10 +564,11 @@ def _planar_movers(
 ) -> Callable[[int, int], None]:
     """Create the moving artists of a 2D view; return ``update(k, first)`` (trail from ``first``)."""
     pos = run.positions[:, :, list(axes)]
-    half = run.delta[list(axes)]
+    halves = run.body_half_sizes[:, list(axes)]
     for i, color in enumerate(colors):
         ax.plot(*run.goals[i, list(axes)], "*", color=color, markeredgecolor="k", markersize=11, zorder=4)
-    boxes = [ax.add_patch(_box_patch(pos[0, i], half, c, 0.3, zorder=2)) for i, c in enumerate(colors)]
+    boxes = [ax.add_patch(_box_patch(pos[0, i], halves[i], c, 0.3, zorder=2, gid=f"{GID_BODY}:{i}"))
+             for i, c in enumerate(colors)]
     trails = [ax.plot([], [], color=c, linewidth=1.5, zorder=3)[0] for c in colors]
     dots = [ax.plot([], [], "o", color=c, markeredgecolor="k", markersize=5, zorder=5)[0] for c in colors]
     numbers = [ax.text(*pos[0, i], f" {i}", color=c, fontsize=8, fontweight="bold", zorder=6)
@@ -565,7 +576,7 @@ def _planar_movers(
 
     def update(k: int, first: int) -> None:
         for i in range(len(colors)):
-            boxes[i].set_xy(tuple(pos[k, i] - half))
+            boxes[i].set_xy(tuple(pos[k, i] - halves[i]))
             trails[i].set_data(pos[first : k + 1, i, 0], pos[first : k + 1, i, 1])
             dots[i].set_data([pos[k, i, 0]], [pos[k, i, 1]])
             numbers[i].set_position(tuple(pos[k, i]))
@@ -582,14 +593,15 @@ def _cube_edges(center: np.ndarray, half: np.ndarray) -> np.ndarray:
 
 
 def _spatial_movers(ax: Any, run: RunData, colors: list[Any]) -> Callable[[int, int], None]:
-    """Moving artists of the 3D axes: dots, trails and wireframe boxes."""
+    """Moving artists of the 3D axes: dots, trails and wireframe bodies."""
     pos = run.positions
+    bodies = run.body_half_sizes
     for i, color in enumerate(colors):
         ax.plot(*run.goals[i, :3, None], "*", color=color, markeredgecolor="k", markersize=10)
     trails = [ax.plot([], [], [], color=c, linewidth=1.4)[0] for c in colors]
     dots = [ax.plot([], [], [], "o", color=c, markeredgecolor="k", markersize=5)[0] for c in colors]
     cubes = Line3DCollection(
-        np.concatenate([_cube_edges(pos[0, i], run.delta) for i in range(len(colors))]),
+        np.concatenate([_cube_edges(pos[0, i], bodies[i]) for i in range(len(colors))]),
         colors=np.repeat(np.asarray(colors), 12, axis=0), linewidths=0.7, alpha=0.6,
     )
     ax.add_collection3d(cubes)
@@ -600,7 +612,7 @@ def _spatial_movers(ax: Any, run: RunData, colors: list[Any]) -> Callable[[int, 
             trails[i].set_data_3d(pos[first : k + 1, i, 0], pos[first : k + 1, i, 1], pos[first : k + 1, i, 2])
             dots[i].set_data_3d([pos[k, i, 0]], [pos[k, i, 1]], [pos[k, i, 2]])
             numbers[i].set_position_3d(tuple(pos[k, i]))
-        cubes.set_segments(np.concatenate([_cube_edges(pos[k, i], run.delta) for i in range(len(colors))]))
+        cubes.set_segments(np.concatenate([_cube_edges(pos[k, i], bodies[i]) for i in range(len(colors))]))
 
     return update
 
@@ -635,7 +647,7 @@ def animate(
     fps: float | None = None,
     max_frames: int = 200,
 ) -> Path:
-    """Write an animation of the run: agents with their boxes, short trails, goals and obstacles.
+    """Write an animation of the run: agents with their bodies, short trails, goals and obstacles.
 
     Parameters
     ----------
@@ -702,7 +714,7 @@ def animate(
         ax.set_title("top view (x-y)", fontsize=9)
         updates = [_spatial_movers(ax3, run, colors), _planar_movers(ax, run, (0, 1), colors)]
     method = run.summary.get("method", _scenario(run).solver.method)
-    fig.suptitle(f"{_plain(run.name)} ({_plain(method)})", fontsize=10)
+    fig.suptitle(f"{_plain(run.name)} ({_plain(method)}); boxes: {BODY_LABEL}", fontsize=10)
     clock = ax.text(0.02, 0.98, "", transform=ax.transAxes, fontsize=9, va="top", ha="left", zorder=10,
                     bbox={"boxstyle": "round,pad=0.3", "facecolor": "white", "edgecolor": "0.6", "alpha": 0.85})
     label = _time_format(times)

@@ -7,10 +7,10 @@ opens offline from a ``file://`` URL and can be attached to a report or an issue
 
 The page shows, in 2D and in 3D:
 
-* per agent: its moving position marker (trace name ``agent i``), the box of half-size delta
-  around it (drawn red while another agent is inside it, i.e. in collision), its trail (the
-  path so far), its whole path (faint), start (circle) and goal (star in 2D, diamond in 3D)
-  markers;
+* per agent: its moving position marker (trace name ``agent i``), its body, the box of
+  half-size b_i around it (drawn red while it overlaps another agent's body, i.e. exactly when
+  the pair is counted as a collision), its trail (the path so far), its whole path (faint),
+  start (circle) and goal (star in 2D, diamond in 3D) markers;
 * the static obstacles (filled polygons in 2D, translucent hull meshes in 3D) and the
   workspace outline;
 * animation frames over time (at most about 200), play/pause buttons and a time slider in
@@ -19,10 +19,11 @@ The page shows, in 2D and in 3D:
   nearest neighbour in the inf-norm and the Euclidean norm at that instant;
 * the closest approach of the run (a marker at the midpoint of the closest pair at that
   instant, annotated ``closest approach: X m (inf-norm), t = Y s``) and a title with the
-  scenario, method, collisions and the minimum separation over delta.
+  scenario, method, collisions, the minimum separation over δ_ij = b_i + b_j and the bodies.
 
-Every trace of the figure carries ``meta = {"role": ..., "agent": i}`` (roles: agent, box,
-trail, path, start, goal, obstacle, obstacle-edges, workspace, closest, closest-pair) so that
+Every trace of the figure carries ``meta = {"role": ..., "agent": i}`` (roles: agent, box (the
+body), trail, path, start, goal, obstacle, obstacle-edges, workspace, closest, closest-pair,
+bodies-legend) so that
 tests and scripts find the traces of one kind without relying on their order. A frame holds
 only what changes (positions, hover data, collision colours) of the traces it names by index
 in ``frame.traces``; plotly.js merges it into those traces.
@@ -47,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from swarmpc.model.geometry import as_bodies, pair_deltas
 from swarmpc.palette import agent_colors
 from swarmpc.simulation.rundata import RunData
 from swarmpc.simulation.rundata import load_run as load_run_data
@@ -101,16 +103,21 @@ class ClosestApproach:
     step: int  # the time index k where it happens
     time: float  # t[k] [s]
     pair: tuple[int, int]  # (i, j), i < j
-    ratio: float  # min over k, i < j of max_a |p_i,a - p_j,a| / delta_a (< 1: collision)
+    ratio: float  # min over k, i < j of max_a |p_i,a - p_j,a| / (b_i,a + b_j,a) (< 1: collision)
 
 
 def closest_approach(positions: np.ndarray, t: np.ndarray, delta: np.ndarray) -> ClosestApproach | None:
-    """Closest pair of agents over the run (None with fewer than two agents)."""
+    """Closest pair of agents over the run (None with fewer than two agents).
+
+    ``delta``: one Δ (d,) for every pair, or the bodies' half-sizes (M, d) (pair Δ_ij = b_i + b_j).
+    """
     positions = np.asarray(positions, float)
     steps, m, _ = positions.shape
     if m < 2:
         return None
     iu, ju = np.triu_indices(m, k=1)
+    bodies = as_bodies(delta, m)
+    pair_delta = bodies[iu] + bodies[ju]  # (pairs, d)
     best = (math.inf, 0, 0)
     best_ratio = math.inf
     chunk = max(1, 2_000_000 // max(1, len(iu) * positions.shape[2]))
@@ -123,7 +130,7 @@ def closest_approach(positions: np.ndarray, t: np.ndarray, delta: np.ndarray) ->
             k, pair = divmod(flat, len(iu))
             if dist[k, pair] < best[0]:
                 best = (float(dist[k, pair]), start + k, pair)
-        ratio = (gaps / delta).max(axis=2)
+        ratio = (gaps / pair_delta).max(axis=2)
         if np.isfinite(ratio).any():
             best_ratio = min(best_ratio, float(np.nanmin(ratio)))
     if not math.isfinite(best[0]):
@@ -300,26 +307,51 @@ def _template(name: str) -> dict[str, Any]:
     return pio.templates[name].to_plotly_json()
 
 
-def _neighbour_table(positions: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, ...]:
-    """For one instant (M, d): nearest neighbour of every agent in the inf- and the 2-norm.
+def _neighbour_table(positions: np.ndarray, bodies: np.ndarray) -> tuple[np.ndarray, ...]:
+    """For one instant (M, d) and the bodies (M, d): nearest neighbour of every agent in the inf-
+    and the 2-norm.
 
-    Returns (inf distance, inf neighbour, 2-norm distance, 2-norm neighbour, separation/delta),
-    each (M,); distances are inf and neighbours -1 for a lone agent.
+    Returns (inf distance, inf neighbour, 2-norm distance, 2-norm neighbour, smallest separation
+    / (b_i + b_j), colliding), each (M,); distances are inf and neighbours -1 for a lone agent.
+    ``colliding`` marks the agents whose body overlaps another's by the rule the run's
+    ``collisions`` count uses (:func:`swarmpc.model.geometry.count_collisions`, 1e-9 m tolerance).
     """
     m = positions.shape[0]
     diff = positions[:, None, :] - positions[None, :, :]
     d_inf = np.abs(diff).max(axis=2)
     d_two = np.linalg.norm(diff, axis=2)
-    ratio = (np.abs(diff) / delta).max(axis=2)
+    reach = pair_deltas(bodies)
+    ratio = (np.abs(diff) / reach).max(axis=2)
     for table in (d_inf, d_two, ratio):
         np.fill_diagonal(table, np.inf)
     if m < 2:
         none = np.full(m, np.inf)
-        return none, np.full(m, -1), none, np.full(m, -1), none
+        return none, np.full(m, -1), none, np.full(m, -1), none, np.zeros(m, bool)
+    colliding = (ratio < 1 - 1e-9 / reach.max(axis=2)).any(axis=1)
     n_inf = np.argmin(d_inf, axis=1)
     n_two = np.argmin(d_two, axis=1)
     rows = np.arange(m)
-    return d_inf[rows, n_inf], n_inf, d_two[rows, n_two], n_two, ratio.min(axis=1)
+    return d_inf[rows, n_inf], n_inf, d_two[rows, n_two], n_two, ratio.min(axis=1), colliding
+
+
+BODIES_LEGEND = "bodies (half-size b)"
+"""Legend entry of the agents' boxes: what they are."""
+
+
+def _bodies_legend(trace: dict[str, Any], is3d: bool) -> dict[str, Any]:
+    """A legend-only entry (no data) saying what the boxes around the agents are."""
+    trace.update(mode="lines", line=dict(color="rgb(110, 110, 110)", width=2 if is3d else 1),
+                 name=BODIES_LEGEND, hoverinfo="skip", meta={"role": "bodies-legend"})
+    if not is3d:
+        trace.update(fill="toself", fillcolor="rgba(110, 110, 110, 0.12)")
+    return trace
+
+
+def _length_text(values: np.ndarray) -> str:
+    """``0.3 m`` when every axis is the same, else ``(0.3, 0.3, 0.2) m``."""
+    if np.allclose(values, values[0]):
+        return f"{values[0]:.3g} m"
+    return "(" + ", ".join(f"{v:.3g}" for v in values) + ") m"
 
 
 def _title(run: RunData, closest: ClosestApproach | None) -> str:
@@ -330,16 +362,17 @@ def _title(run: RunData, closest: ClosestApproach | None) -> str:
     if isinstance(collisions, (list, tuple)):
         collisions = len(collisions)
     if closest is not None:
-        sep = f"min separation {closest.distance:.3f} m (inf-norm), min separation / δ = {closest.ratio:.2f}"
+        sep = f"min separation {closest.distance:.3f} m (inf-norm), min separation / δ_ij = {closest.ratio:.2f}"
     elif isinstance(s.get("min_separation_inf"), (int, float)):
         sep = f"min separation {float(s['min_separation_inf']):.3f} m (inf-norm)"
     else:
         sep = "single agent"
-    delta = run.delta
-    if np.allclose(delta, delta[0]):
-        delta_text = f"{delta[0]:.3g} m"
+    delta_text = _length_text(run.delta)
+    bodies = run.body_half_sizes
+    if np.allclose(bodies, bodies[0]):
+        body_text = f"bodies: half-size b = {_length_text(bodies[0])}, δ_ij = b_i + b_j"
     else:
-        delta_text = "(" + ", ".join(f"{v:.3g}" for v in delta) + ") m"
+        body_text = f"bodies: half-size b = {bodies.min():.3g}–{bodies.max():.3g} m, δ_ij = b_i + b_j"
     extra = []
     if "all_reached" in s:
         extra.append("all goals reached" if s["all_reached"] else "goals NOT all reached")
@@ -348,7 +381,7 @@ def _title(run: RunData, closest: ClosestApproach | None) -> str:
     name, method, collision = (html.escape(str(v)) for v in (run.name, method, collision))
     head = f"<b>{name}</b> · {method} · {collision} collision avoidance"
     line2 = (
-        f"collisions: {html.escape(str(collisions))} · {sep} · δ = {delta_text} · "
+        f"collisions: {html.escape(str(collisions))} · {sep} · {body_text} (δ = {delta_text}) · "
         f"{run.num_agents} agents, {len(run.t) - 1} steps"
     )
     if extra:
@@ -377,10 +410,11 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
     """:func:`figure_dict` of a run already loaded (see :func:`load_run`)."""
     d, m = run.dim, run.num_agents
     is3d = d == 3
-    P, V, t, delta = run.positions, run.velocities, run.t, run.delta
+    P, V, t, bodies = run.positions, run.velocities, run.t, run.body_half_sizes
     steps = P.shape[0]
     colors = agent_colors(m)
-    closest = closest_approach(P, t, delta)
+    closest = closest_approach(P, t, bodies)
+    reach = bodies.max(axis=0)
     frames_k = frame_indices(steps, max_frames, keep=closest.step if closest else None)
 
     # ---- axis ranges: workspace (or padded starts/goals) and everything that moved, fixed
@@ -390,10 +424,10 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         lo, hi = np.full(d, np.inf), np.full(d, -np.inf)
     finite = P[np.isfinite(P).all(axis=2)]
     if finite.size:
-        lo = np.minimum(lo, finite.min(axis=0) - delta)
-        hi = np.maximum(hi, finite.max(axis=0) + delta)
-    lo = np.minimum(lo, run.goal_positions.min(axis=0) - delta)
-    hi = np.maximum(hi, run.goal_positions.max(axis=0) + delta)
+        lo = np.minimum(lo, finite.min(axis=0) - reach)
+        hi = np.maximum(hi, finite.max(axis=0) + reach)
+    lo = np.minimum(lo, run.goal_positions.min(axis=0) - reach)
+    hi = np.maximum(hi, run.goal_positions.max(axis=0) + reach)
     obstacles = run.scenario.obstacle_halfspaces() if run.scenario is not None else []
     span = np.maximum(hi - lo, 1e-6)
     far_lo, far_hi = lo - 10 * span - 10, hi + 10 * span + 10
@@ -548,7 +582,7 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         i, j = closest.pair
         pi, pj = P[closest.step, i], P[closest.step, j]
         mid = 0.5 * (pi + pj)
-        pair_ratio = float(np.max(np.abs(pi - pj) / delta))  # < 1: a collision
+        pair_ratio = float(np.max(np.abs(pi - pj) / (bodies[i] + bodies[j])))  # < 1: a collision
         text = (
             f"closest approach: {closest.distance:.4g} m (inf-norm), t = {closest.time:.2f} s"
         )
@@ -572,7 +606,7 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
                 name="closest approach",
                 legendgroup="closest",
                 hovertemplate=(
-                    f"{text}<br>agents {i} and {j}, separation / δ = {pair_ratio:.3f}"
+                    f"{text}<br>agents {i} and {j}, separation / δ_ij = {pair_ratio:.3f}"
                     f"<br>Euclidean {float(np.linalg.norm(pi - pj)):.4g} m<extra></extra>"
                 ),
                 meta={
@@ -602,7 +636,7 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         else:
             annotations.append(dict(x=float(mid[0]), y=float(mid[1]), xref="x", yref="y", **note))
 
-    # ---- dynamic per agent: trail, delta box, marker (these are what frames update)
+    # ---- dynamic per agent: trail, body, marker (these are what frames update)
     hover = (
         "<b>agent %{customdata[0]}</b> · t = %{customdata[8]:.2f} s<br>"
         + ("position (%{x:.2f}, %{y:.2f}, %{z:.2f})<br>" if is3d else "position (%{x:.2f}, %{y:.2f})<br>")
@@ -613,23 +647,23 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         hover += (
             "nearest, inf-norm: %{customdata[3]:.3f} m (agent %{customdata[4]})<br>"
             "nearest, Euclidean: %{customdata[5]:.3f} m (agent %{customdata[6]})<br>"
-            "separation / δ: %{customdata[7]:.2f}"
+            "separation / δ_ij: %{customdata[7]:.2f}"
         )
     hover += "<extra></extra>"
 
     def dynamic(k_pos: int, full: bool) -> list[dict[str, Any]]:
-        """The 3M dynamic traces (trail, box, marker per agent) at frame position ``k_pos``.
+        """The 3M dynamic traces (trail, body, marker per agent) at frame position ``k_pos``.
 
         ``full`` gives complete traces (the figure's initial data); otherwise only what changes
         from frame to frame (plotly.js merges a frame's data into the traces it names).
         """
         k = int(frames_k[k_pos])
         trail_k = _trail_indices(frames_k, k_pos)
-        n_inf, id_inf, n_two, id_two, ratio = _neighbour_table(P[k], delta)
+        n_inf, id_inf, n_two, id_two, ratio, overlapping = _neighbour_table(P[k], bodies)
         out: list[dict[str, Any]] = []
         for i in range(m):
             p = P[k, i]
-            colliding = bool(m > 1 and ratio[i] < 1 - 1e-9)
+            colliding = bool(overlapping[i])
             edge = _CLOSEST_COLOR if colliding else colors[i]
             trail = scatter(**axes([_rlist(P[trail_k, i, a], 3) for a in range(d)]))
             if full:
@@ -644,14 +678,14 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
                 )
             out.append(trail)
 
-            box = scatter(**axes(_box_lines(p - delta, p + delta, 3)))
+            box = scatter(**axes(_box_lines(p - bodies[i], p + bodies[i], 3)))
             box["line"] = dict(color=edge, width=(3 if colliding else 2) if is3d else (2 if colliding else 1))
             if not is3d:
                 box["fillcolor"] = _rgba(edge, 0.22 if colliding else 0.12)
             if full:
                 box.update(
                     mode="lines",
-                    name=f"agent {i} box",
+                    name=f"agent {i} body",
                     legendgroup=f"agent {i}",
                     showlegend=False,
                     hoverinfo="skip",
@@ -697,6 +731,7 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
             out.append(marker)
         return out
 
+    traces.append(_bodies_legend(scatter(**axes([[None]] * d)), is3d))
     first_dynamic = len(traces)
     traces.extend(dynamic(0, full=True))
     dynamic_ids = list(range(first_dynamic, len(traces)))

@@ -57,6 +57,8 @@ class _Layout:
                 out[block.start : block.stop] = array  # a vector already in CasADi's order, or a scalar
             elif array.shape == block.shape:
                 out[block.start : block.stop] = array.ravel(order="F")
+            elif array.ndim == 1 and array.size == block.shape[0]:  # one column for every column
+                out[block.start : block.stop] = np.broadcast_to(array[:, None], block.shape).ravel(order="F")
             else:
                 out[block.start : block.stop] = np.broadcast_to(array, block.shape).ravel(order="F")
         return out

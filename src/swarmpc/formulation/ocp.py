@@ -14,8 +14,12 @@ Two traps of the paper's statement are designed around (design.md section 9):
   has no free variable. Collision constraints start at k = 2 for Euler (k = 1 was enforced as k = 2
   of the previous solve) and at k = 1 for the exact zero-order hold, where p(1) depends on u(0).
 
+Agents have bodies (axis-aligned boxes of half-size b_i). A pair keeps its centres' offset out of
+the box of half-size Delta_ij = b_i + b_j; an obstacle keeps the whole body out because each
+agent's OCP holds the obstacles grown by its own body (:meth:`OCPSettings.for_body`).
+
 Every builder runs once per problem shape; everything that changes between calls (states, goals,
-delta, consensus targets, multipliers, rho) is a parameter.
+each pair's Delta, consensus targets, multipliers, rho) is a parameter.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import numpy as np
 from swarmpc.config import Scenario
 from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder
 from swarmpc.model.dynamics import discrete_matrices
+from swarmpc.model.geometry import inflate_polytope
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,13 @@ class OCPSettings:
             speed=scn.limits.speed,
             obstacles=tuple(scn.obstacle_halfspaces()),
         )
+
+    def for_body(self, half_size: np.ndarray) -> OCPSettings:
+        """The settings of an agent whose body has ``half_size`` per axis: every obstacle grown by
+        the body (:func:`swarmpc.model.geometry.inflate_polytope`), so that OBCA on the agent's
+        centre keeps its whole body d_min away. The workspace still bounds the centre."""
+        grown = tuple((G, inflate_polytope(G, g, half_size)) for G, g in self.obstacles)
+        return replace(self, obstacles=grown)
 
     @property
     def first_constrained_step(self) -> int:
@@ -199,7 +211,8 @@ def add_certificate(
 def add_pair_avoidance(
     builder: ProblemBuilder, tag: str, offsets: ca.SX, half_size: ca.SX, s: OCPSettings
 ) -> None:
-    """OBCA between two agents: point offset q against the box of half-size delta.
+    """OBCA between two agents: point offset q against the box of half-size Delta_ij (the pair's
+    ``half_size``, b_i + b_j).
 
     Declares certificate ``L{tag}`` (2d, K) and, in the soft form, slack ``A{tag}`` (1, K).
     """
@@ -230,16 +243,30 @@ def pair_tag(i: int, j: int) -> str:
     return f"{i}_{j}"
 
 
-def build_centralized(s: OCPSettings, num_agents: int, options: dict | None = None) -> CompiledNLP:
-    """The global OCP: every agent's cost summed, every pair (i < j) coupled by OBCA."""
+def agent_pairs(num_agents: int) -> list[tuple[int, int]]:
+    """Every pair (i, j), i < j, in the order of the columns of the centralised ``delta``."""
+    return [(i, j) for i in range(num_agents) for j in range(i + 1, num_agents)]
+
+
+def build_centralized(
+    s: OCPSettings, num_agents: int, options: dict | None = None, bodies: np.ndarray | None = None,
+) -> CompiledNLP:
+    """The global OCP: every agent's cost summed, every pair (i < j) coupled by OBCA.
+
+    Parameter ``delta`` (d, P) holds each pair's Delta_ij, one column per pair of
+    :func:`agent_pairs`. ``bodies`` (M, d): each agent's obstacles are grown by its own body
+    (:meth:`OCPSettings.for_body`); None: the obstacles of ``s`` as they are.
+    """
     builder = ProblemBuilder()
-    half = builder.parameter("delta", s.dim)
+    pairs = agent_pairs(num_agents)
+    half = builder.parameter("delta", s.dim, len(pairs))
     first = s.first_constrained_step
-    trajectories = [add_agent(builder, str(i), s) for i in range(num_agents)]
-    for i in range(num_agents):
-        for j in range(i + 1, num_agents):
-            offsets = trajectories[i][0][: s.dim, first:] - trajectories[j][0][: s.dim, first:]
-            add_pair_avoidance(builder, pair_tag(i, j), offsets, half, s)
+    trajectories = [
+        add_agent(builder, str(i), s if bodies is None else s.for_body(bodies[i])) for i in range(num_agents)
+    ]
+    for column, (i, j) in enumerate(pairs):
+        offsets = trajectories[i][0][: s.dim, first:] - trajectories[j][0][: s.dim, first:]
+        add_pair_avoidance(builder, pair_tag(i, j), offsets, half[:, column], s)
     return builder.build(f"central_{num_agents}", "ipopt", {**IPOPT_OPTIONS, **(options or {})})
 
 
@@ -253,9 +280,12 @@ def build_local(
     steps, certificates ``L{c}``. Copies are either free positions ``C{c}`` (d, K) or, with
     ``dynamic_copies``, whole trajectories ``Xc{c}``/``Uc{c}`` from the neighbour's measured state
     ``x0c{c}`` obeying its dynamics and limits. Only the own trajectory is ever applied.
-    Parameters: ``x0``, ``goal``, ``delta``, ``rho``, ``owner_weight``, the consensus targets ``Z``
-    (own) and ``Z{c}``, and the multipliers ``Y`` and ``Y{c}`` (gamma). One problem is built per
-    neighbour count (:class:`swarmpc.solvers.admm.LocalSolverLadder`), so every copy is in use.
+    Parameters: ``x0``, ``goal``, ``delta`` (d, num_copies: column c is the Delta_ij of the pair
+    with copy c; a (d,) value is taken for every copy), ``rho``, ``owner_weight``, the consensus
+    targets ``Z`` (own) and ``Z{c}``, and the multipliers ``Y`` and ``Y{c}`` (gamma). The static
+    obstacles are those of ``s``: pass the agent's :meth:`OCPSettings.for_body`. One problem is
+    built per neighbour count (:class:`swarmpc.solvers.admm.LocalSolverLadder`), so every copy is
+    in use.
 
     Local objective (paper eq. 16): own cost + sum_b gamma_b'(v_b - z_b) + rho_b/2 ||v_b - z_b||^2,
     with rho_b = rho * owner_weight on the own block and rho on the copies (block-weighted consensus:
@@ -273,7 +303,7 @@ def build_local(
     """
     builder = ProblemBuilder()
     d, K, first = s.dim, s.num_constrained, s.first_constrained_step
-    half = builder.parameter("delta", d)
+    half = builder.parameter("delta", d, num_copies)
     rho = builder.parameter("rho", 1)
     owner_weight = builder.parameter("owner_weight", 1)
     X, _ = add_agent(builder, "", s)
@@ -291,7 +321,7 @@ def build_local(
         y = builder.parameter(f"Y{c}", d, K)
         builder.cost += consensus_penalty(copy, z, y, rho)
         lam = builder.variable(f"L{c}", 2 * d, K, 0.0, np.inf)
-        margin, norm_sq = certificate_terms(own - copy, lam, half)
+        margin, norm_sq = certificate_terms(own - copy, lam, half[:, c])
         add_certificate(builder, str(c), margin, norm_sq, pair_settings)
     for p in range(num_planes):
         normals = builder.parameter(f"Hn{p}", d, K)

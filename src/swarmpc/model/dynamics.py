@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+import scipy.linalg
 
 Discretization = Literal["euler", "zoh"]
 
@@ -71,3 +72,75 @@ class DoubleIntegrator:
         for control in controls:
             states.append(self.step(states[-1], control))
         return np.array(states)
+
+
+def lqr_terminal_weight(model: DoubleIntegrator, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Infinite-horizon cost-to-go P of ``model`` with stage cost sᵀQs + uᵀRu.
+
+    P is the stabilising solution of the discrete algebraic Riccati equation
+    P = AᵀPA − AᵀPB (R + BᵀPB)⁻¹ BᵀPA + Q of the discretised dynamics (A, B). Used as the
+    terminal weight of a finite-horizon MPC, it makes the MPC equal to the infinite-horizon LQR
+    wherever no constraint binds, whatever the horizon, which is why it is offered as
+    ``weights.Qf: lqr``.
+
+    Parameters
+    ----------
+    model
+        The agent's discretised double integrator (its ``dt`` and ``method`` matter).
+    Q
+        (2d, 2d) symmetric positive semidefinite state weight; every mode of the double
+        integrator must show in it (a weight on each position suffices), see
+        :func:`riccati_weights_problem`.
+    R
+        (d, d) symmetric positive definite input weight.
+
+    Returns
+    -------
+    numpy.ndarray
+        (2d, 2d) symmetric positive definite P.
+
+    Raises
+    ------
+    ValueError
+        When the Riccati equation has no stabilising solution for these weights.
+    """
+    Q, R = np.asarray(Q, float), np.asarray(R, float)
+    problem = riccati_weights_problem(Q, R)
+    if problem is not None:
+        raise ValueError(problem)
+    try:
+        P = scipy.linalg.solve_discrete_are(model.A, model.B, Q, R)
+    except (np.linalg.LinAlgError, ValueError) as err:
+        raise ValueError(f"no stabilising Riccati solution for these Q, R ({err})") from None
+    return 0.5 * (P + P.T)
+
+
+def lqr_gain(model: DoubleIntegrator, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Infinite-horizon LQR gain K = (R + BᵀPB)⁻¹BᵀPA, the input being u = −K (s − s_goal).
+
+    The reference the ``Qf: lqr`` MPC must reproduce where no constraint binds.
+    """
+    P = lqr_terminal_weight(model, Q, R)
+    A, B = model.A, model.B
+    return np.linalg.solve(np.asarray(R, float) + B.T @ P @ B, B.T @ P @ A)
+
+
+def riccati_weights_problem(Q: np.ndarray, R: np.ndarray) -> str | None:
+    """Why the double integrator's Riccati equation has no stabilising solution for Q, R, or None.
+
+    Every eigenvalue of the double integrator's A (Euler or zero-order hold, any dt) is 1, on the
+    unit circle, so a stabilising solution exists iff R is positive definite and every mode is
+    observable through Q: the pair (A_c, Q) with A_c the continuous A has full observability rank.
+    A Q that weighs only velocities, for example, leaves positions free and has no solution.
+    """
+    Q, R = np.asarray(Q, float), np.asarray(R, float)
+    size = Q.shape[0] if Q.ndim == 2 else 0
+    if size == 0 or Q.shape != (size, size) or size % 2 or R.shape != (size // 2, size // 2):
+        return f"Q must be 2d x 2d and R d x d, got {Q.shape} and {R.shape}"
+    if np.min(np.linalg.eigvalsh(0.5 * (R + R.T))) <= 0:
+        return "R must be positive definite"
+    A, _ = continuous_matrices(size // 2)
+    observability = np.vstack([Q, Q @ A])
+    if np.linalg.matrix_rank(observability) < size:
+        return "Q leaves a mode of the double integrator unweighted (give every position a weight)"
+    return None

@@ -1,7 +1,13 @@
 """Geometry of agents and obstacles: polytopes, boxes, distances and separations.
 
-Agents are axis-aligned boxes of half-size delta (one value per axis) around their positions;
-static obstacles are convex polytopes {p : G p <= g}.
+Every agent has a body: an axis-aligned box of half-size b_i (one value per axis) around its
+position. Two agents collide when their bodies overlap, i.e. when |p_i - p_j| < Delta_ij on every
+axis with Delta_ij = b_i + b_j; the scenario's delta is the Delta of two default bodies (b = delta / 2).
+Static obstacles are convex polytopes {p : G p <= g}; a body stays out of one when its centre
+stays out of the polytope grown by the body (:func:`inflate_polytope`).
+
+Functions that take a ``delta`` accept either form the solvers use: a 1-D Delta (d,) shared by
+every pair, or per-agent body half-sizes (M, d) (:func:`as_bodies`).
 """
 
 from __future__ import annotations
@@ -80,10 +86,52 @@ def polytope_certificate(point: np.ndarray, G: np.ndarray, g: np.ndarray) -> np.
     return certificate
 
 
+def as_bodies(delta: np.ndarray, num_agents: int) -> np.ndarray:
+    """Per-agent body half-sizes (M, d) from a solver's ``delta``.
+
+    A 1-D ``delta`` (d,) is one Delta for every pair, which is every body of half-size delta / 2:
+    halving and doubling are exact in binary floating point, so b_i + b_j reproduces delta bit
+    for bit. A 2-D ``delta`` (M, d) is the bodies themselves.
+    """
+    delta = np.asarray(delta, float)
+    if delta.ndim == 2:
+        if delta.shape[0] != num_agents:
+            raise ValueError(f"bodies: expected {num_agents} rows, got {delta.shape[0]}")
+        return delta.copy()
+    return np.tile(delta.reshape(-1) / 2.0, (num_agents, 1))
+
+
+def pair_deltas(bodies: np.ndarray) -> np.ndarray:
+    """(M, M, d) Delta_ij = b_i + b_j of every pair of bodies (M, d): how far apart, per axis, two
+    agents' centres must stay for their bodies not to overlap."""
+    bodies = np.asarray(bodies, float)
+    return bodies[:, None, :] + bodies[None, :, :]
+
+
+def largest_pair_delta(bodies: np.ndarray) -> np.ndarray:
+    """(M, M) largest axis of each pair's Delta_ij: an inf-norm gap at least this large keeps the
+    two bodies apart on some axis."""
+    return pair_deltas(bodies).max(axis=2)
+
+
+def inflate_polytope(G: np.ndarray, g: np.ndarray, half_size: np.ndarray) -> np.ndarray:
+    """Offsets g' of the polytope {p : G p <= g} grown by a box body of ``half_size`` per axis.
+
+    Facet k moves out by the box's support function in its normal direction, sum_a |G_ka| b_a.
+    The body at p meets the obstacle only if p lies in {G p <= g'}: that set contains the
+    Minkowski sum of obstacle and box (it is exactly that sum when the obstacle is an axis-aligned
+    box; at a sharp vertex of another polytope it also takes in a sliver the body does not reach,
+    which errs on the safe side). The OBCA point-in-polytope certificate against {G p <= g'}
+    therefore keeps the whole body out.
+    """
+    return np.asarray(g, float) + np.abs(np.asarray(G, float)) @ np.asarray(half_size, float)
+
+
 def inf_separation_ratio(positions: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """Pairwise max_a |p_i,a - p_j,a| / delta_a for positions (..., M, d); < 1 is a collision.
 
-    Returns (..., M, M) with +inf on the diagonal.
+    ``delta`` is one Delta (d,) for every pair or each pair's Delta_ij (M, M, d)
+    (:func:`pair_deltas`). Returns (..., M, M) with +inf on the diagonal.
     """
     positions = np.asarray(positions, float)
     delta = np.asarray(delta, float)
@@ -97,17 +145,49 @@ def inf_separation_ratio(positions: np.ndarray, delta: np.ndarray) -> np.ndarray
 def count_collisions(positions: np.ndarray, delta: np.ndarray, tol: float = 1e-9) -> int:
     """Number of (k, i < j) with agents i and j inside each other's box at step k.
 
-    ``positions`` is (T, M, d); the test is ||p_i - p_j||_inf < delta (per axis: outside on no
-    axis), with a small tolerance so touching boxes do not count.
+    ``positions`` is (T, M, d) and ``delta`` one Delta (d,) or every pair's Delta_ij (M, M, d);
+    the test is ||p_i - p_j||_inf < delta (per axis: outside on no axis), with a small tolerance
+    (``tol`` metres on the pair's largest axis) so touching boxes do not count.
     """
     ratio = inf_separation_ratio(positions, delta)
     m = ratio.shape[-1]
     upper = np.triu(np.ones((m, m), bool), k=1)
-    scale = np.asarray(delta, float).max()
+    scale = np.atleast_1d(np.asarray(delta, float)).max(axis=-1)
     return int(np.sum((ratio < 1 - tol / scale) & upper))
+
+
+def count_body_collisions(positions: np.ndarray, bodies: np.ndarray, tol: float = 1e-9) -> int:
+    """Number of (k, i < j) whose bodies overlap at step k: |p_i - p_j| < b_i + b_j on every axis.
+
+    ``positions`` (T, M, d), ``bodies`` (M, d). With every body delta / 2 this is exactly
+    :func:`count_collisions` with ``delta``.
+    """
+    return count_collisions(positions, pair_deltas(bodies), tol)
+
+
+def body_separation_ratio(positions: np.ndarray, bodies: np.ndarray) -> np.ndarray:
+    """Pairwise max_a |p_i,a - p_j,a| / (b_i,a + b_j,a) for positions (..., M, d) and bodies (M, d):
+    < 1 where two bodies overlap; (..., M, M) with +inf on the diagonal."""
+    return inf_separation_ratio(positions, pair_deltas(bodies))
 
 
 def obstacle_penetration(positions: np.ndarray, G: np.ndarray, g: np.ndarray) -> np.ndarray:
     """Depth by which each position (..., d) lies inside {G p <= g}; <= 0 means outside."""
     norms = np.linalg.norm(G, axis=1)
     return np.min((g - np.asarray(positions) @ G.T) / norms, axis=-1)
+
+
+def body_obstacle_penetration(
+    positions: np.ndarray, bodies: np.ndarray, G: np.ndarray, g: np.ndarray
+) -> np.ndarray:
+    """Depth by which each agent's body reaches into {G p <= g}: :func:`obstacle_penetration` of
+    its centre against the obstacle grown by its body (:func:`inflate_polytope`).
+
+    ``positions`` (..., M, d), ``bodies`` (M, d); returns (..., M), <= 0 where the body stays out.
+    For a box obstacle, > 0 exactly when the body's box overlaps the obstacle.
+    """
+    grown = np.asarray(g, float)[None, :] + np.asarray(bodies, float) @ np.abs(np.asarray(G, float)).T  # (M, f)
+    norms = np.linalg.norm(G, axis=1)
+    inside = (grown - np.asarray(positions, float) @ np.asarray(G, float).T) / norms
+    return np.min(inside, axis=-1)
+

@@ -1,5 +1,5 @@
 """Seeded uncertainty for the closed loop: process noise on the true state, measurement noise on
-what the planner sees, and the planner's tightened delta.
+what the planner sees, and the planner's tightened bodies.
 
 The draws come from generators seeded by the scenario's ``seed`` (one stream for process noise,
 another for measurement noise, so switching one on does not change the other's draws); a run
@@ -17,9 +17,22 @@ _PROCESS_STREAM = 1
 _MEASUREMENT_STREAM = 2
 
 
+def planner_bodies(scn: Scenario) -> np.ndarray:
+    """(M, d) half-sizes of the bodies the planner keeps apart: each true body grown by half the
+    tightening, so that every pair keeps its Delta_ij plus the tightening (and every obstacle half
+    the tightening more). Collisions are still counted between the true bodies."""
+    return scn.bodies + 0.5 * scn.disturbance.tightening
+
+
 def planner_delta(scn: Scenario) -> np.ndarray:
-    """Half-size of the box the planner keeps agents out of: the true delta plus the tightening."""
-    return scn.delta_vector + scn.disturbance.tightening
+    """(d,) largest Delta_ij the planner keeps between two agents, per axis: the sum of the two
+    largest planner bodies on each axis (twice the body of a lone agent). With default bodies it
+    is the true delta plus the tightening, bit for bit."""
+    bodies = planner_bodies(scn)
+    if len(bodies) < 2:
+        return 2.0 * bodies[0]
+    top = np.sort(bodies, axis=0)[-2:]
+    return top[0] + top[1]
 
 
 class DisturbanceModel:

@@ -6,6 +6,8 @@ import numpy as np
 
 from swarmpc.config import Scenario
 from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.model.geometry import inflate_polytope
+from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.solvers.base import SHIFT_TOLERANCE, PlanStep
 from swarmpc.solvers.guesses import nominal_speed
 from swarmpc.solvers.rrt import RRTGuess, straight_line_guess
@@ -16,7 +18,8 @@ class GuessProvider:
 
     * ``straight``: straight line to the goal at a reachable speed;
     * ``shifted``: the agent's previous plan moved one step forward (straight at the start);
-    * ``rrt``: an OMPL RRT-Connect path around the static obstacles inflated by d_min;
+    * ``rrt``: an OMPL RRT-Connect path around the static obstacles grown by the agent's body
+      (as the planner holds it) and by 0.9 d_min;
     * ``auto``: shifted while the agent's previous solve succeeded, otherwise RRT when the
       scenario has static obstacles and straight when it has none.
 
@@ -31,43 +34,62 @@ class GuessProvider:
         self.strategy = strategy or scn.solver.initial_guess
         self.settings = settings
         self.speed = nominal_speed(settings)
-        self._rrt: RRTGuess | None = None
+        self._planners: list[RRTGuess] = []
+        self._rrt_of: list[RRTGuess] = []  # per agent: the planner of its body
         uses_rrt = self.strategy == "rrt" or (self.strategy == "auto" and scn.obstacles)
         if uses_rrt:
-            lower, upper = scn.bounds()
-            # 0.9 d_min: positions the hard form keeps exactly d_min away stay valid starts
-            self._rrt = RRTGuess(
-                lower, upper, scn.obstacle_halfspaces(), inflate=0.9 * scn.d_min, seed=scn.seed,
-                time_budget=scn.solver.rrt_time_budget,
-            )
+            self._rrt_of = self._body_planners(scn)
         self.lookahead = 1.5 * self.speed * settings.horizon * settings.dt
         self._route: np.ndarray | None = None  # the goals given to the last goals() call
 
+    def _body_planners(self, scn: Scenario) -> list[RRTGuess]:
+        """One RRT planner per body size, around the obstacles grown by that body (the planner's
+        bodies, tightening included) so that a path the centre follows keeps the whole body clear;
+        0.9 d_min on top: positions the hard form keeps exactly d_min away stay valid starts.
+        Returns each agent's planner."""
+        lower, upper = scn.bounds()
+        obstacles = scn.obstacle_halfspaces()
+        planners: dict[bytes, RRTGuess] = {}
+        of_agent = []
+        for body in planner_bodies(scn):
+            key = body.tobytes()
+            if key not in planners:
+                grown = [(G, inflate_polytope(G, g, body)) for G, g in obstacles]
+                planners[key] = RRTGuess(lower, upper, grown, inflate=0.9 * scn.d_min, seed=scn.seed,
+                                         time_budget=scn.solver.rrt_time_budget)
+            of_agent.append(planners[key])
+        self._planners = list(planners.values())
+        return of_agent
+
     @property
     def rrt_stats(self) -> dict[str, int] | None:
-        return self._rrt.stats if self._rrt is not None else None
+        """The RRT planners' counts (fresh, reused, failed), summed over the body sizes."""
+        if not self._planners:
+            return None
+        stats = [planner.stats for planner in self._planners]
+        return {key: sum(s[key] for s in stats) for key in stats[0]}
 
     def _fresh(self, agent: int, state: np.ndarray, goal: np.ndarray) -> np.ndarray:
         s = self.settings
-        if self._rrt is not None:
+        if self._rrt_of:
             if self._route is not None and agent < len(self._route):
                 goal = self._route[agent]  # plan (and reuse) towards the route goal, not the waypoint
-            guess = self._rrt.guess(agent, state, goal[: s.dim], s.dt, s.horizon, self.speed)
+            guess = self._rrt_of[agent].guess(agent, state, goal[: s.dim], s.dt, s.horizon, self.speed)
             if guess is not None:
                 return guess
         return straight_line_guess(state, goal[: s.dim], s.dt, s.horizon, self.speed)
 
     def goals(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """This step's MPC goals: an RRT waypoint for agents whose straight line is blocked."""
-        if self._rrt is None:
+        if not self._rrt_of:
             return goals
         d = self.settings.dim
         self._route = goals.copy()
         out = goals.copy()
         for i, (state, goal) in enumerate(zip(states, goals)):
-            if self._rrt.line_of_sight(state[:d], goal[:d]):
+            if self._rrt_of[i].line_of_sight(state[:d], goal[:d]):
                 continue
-            waypoint = self._rrt.waypoint(i, state[:d], goal[:d], self.lookahead)
+            waypoint = self._rrt_of[i].waypoint(i, state[:d], goal[:d], self.lookahead)
             if waypoint is not None:
                 out[i] = np.concatenate([waypoint, np.zeros(d)])
         return out

@@ -1,4 +1,8 @@
-"""Run metrics, recomputed from the saved arrays (the summary contract of design.md section 8)."""
+"""Run metrics, recomputed from the saved arrays (the summary contract of design.md section 8).
+
+Safety is measured between the agents' bodies (half-sizes ``Scenario.bodies``): a pair collides
+when its bodies overlap, |p_i - p_j| < b_i + b_j on every axis (< delta with default bodies), and
+an obstacle is entered when a body reaches into it."""
 
 from __future__ import annotations
 
@@ -7,7 +11,12 @@ from typing import Any
 import numpy as np
 
 from swarmpc.config import Scenario
-from swarmpc.model.geometry import count_collisions, inf_separation_ratio, obstacle_penetration
+from swarmpc.model.geometry import (
+    body_obstacle_penetration,
+    body_separation_ratio,
+    count_body_collisions,
+    inf_separation_ratio,
+)
 
 
 def closed_loop_cost(states: np.ndarray, inputs: np.ndarray, scn: Scenario) -> float:
@@ -60,12 +69,12 @@ def summarize(
     """The ``summary.json`` dictionary: every number recomputed from the trajectory."""
     d = scn.dim
     positions = states[:, :, :d]
-    delta = scn.delta_vector
+    bodies = scn.bodies
     reached = final_goal_distance(states, scn) <= scn.stop.goal_tolerance + 1e-9
     separation = min_separation_inf(positions)
-    ratio = inf_separation_ratio(positions, delta).min() if scn.num_agents > 1 else float("inf")
+    ratio = body_separation_ratio(positions, bodies).min() if scn.num_agents > 1 else float("inf")
     penetration = max(
-        (float(obstacle_penetration(positions, G, g).max()) for G, g in scn.obstacle_halfspaces()),
+        (float(body_obstacle_penetration(positions, bodies, G, g).max()) for G, g in scn.obstacle_halfspaces()),
         default=None,
     )
     return {
@@ -79,7 +88,7 @@ def summarize(
         "sim_time_s": float(inputs.shape[0] * scn.dt),
         "all_reached": bool(reached.all()),
         "reached": [bool(r) for r in reached],
-        "collisions": count_collisions(positions, delta) if scn.num_agents > 1 else 0,
+        "collisions": count_body_collisions(positions, bodies) if scn.num_agents > 1 else 0,
         "min_separation_inf": _finite_or_none(separation),
         "min_separation_ratio": _finite_or_none(float(ratio)),
         "max_obstacle_penetration": penetration,

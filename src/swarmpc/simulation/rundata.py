@@ -63,7 +63,7 @@ _MAX_MEMBERS = 256
 _MAX_HEADER_BYTES = 10_000
 _NUMERIC_KINDS = "biuf"  # bool, signed and unsigned integers, floats
 
-_TRAJECTORY_KEYS = ("t", "states", "inputs", "goals", "delta", "dt", "disturbances")
+_TRAJECTORY_KEYS = ("t", "states", "inputs", "goals", "delta", "dt", "disturbances", "bodies")
 _STEP_KEYS: Mapping[str, bool] = MappingProxyType({  # name -> True when it has one column per agent
     "step_time_s": False, "agent_time_s": True, "failures": False, "fallback": True,
     "max_slack": False, "repaired": False,
@@ -124,7 +124,7 @@ class RunData:
     goals : np.ndarray
         (M, 2d) goal states.
     delta : np.ndarray
-        (d,) half-size of the box around each agent, per axis (> 0).
+        (d,) Δ per axis (> 0): the separation of two default bodies' centres.
     dt : float
         Sampling time [s] (> 0).
     scenario : Scenario or None
@@ -140,6 +140,10 @@ class RunData:
         Per-step solver records of ``steps.npz`` (``step_time_s``, ``agent_time_s``,
         ``failures``, ``fallback``, ``max_slack``, ``repaired``), each with T rows; empty when
         the file is absent.
+    bodies : np.ndarray or None
+        (M, d) half-size of each agent's body per axis (> 0): ``trajectory.npz``'s ``bodies``,
+        else the scenario's, else delta / 2 (the default body). Two agents collide when their
+        bodies overlap; see :attr:`body_half_sizes`.
     """
 
     run_dir: Path
@@ -154,6 +158,14 @@ class RunData:
     admm: AdmmResiduals | None = None
     disturbances: np.ndarray | None = None
     steps: Mapping[str, np.ndarray] = field(default_factory=lambda: MappingProxyType({}))
+    bodies: np.ndarray | None = None
+
+    @property
+    def body_half_sizes(self) -> np.ndarray:
+        """(M, d) half-size of each agent's body: :attr:`bodies`, or delta / 2 when not given."""
+        if self.bodies is not None:
+            return self.bodies
+        return np.tile(self.delta / 2.0, (self.num_agents, 1))
 
     @property
     def dim(self) -> int:
@@ -451,14 +463,17 @@ def _check_trajectory(arrays: dict[str, np.ndarray], path: Path, scenario: Scena
     t = _optional(arrays, "t", path, (steps + 1,))
     inputs = _optional(arrays, "inputs", path, (steps, agents, dim))
     disturbances = _optional(arrays, "disturbances", path, (steps, agents, 2 * dim))
+    goals = _goals(arrays, path, scenario, agents, dim)
+    delta = _delta(arrays, path, scenario, dim)
     return {
         "states": _frozen(states),
         "dt": dt,
         "t": _frozen(dt * np.arange(steps + 1) if t is None else t),
         "inputs": _frozen(np.full((steps, agents, dim), np.nan) if inputs is None else inputs),
-        "goals": _frozen(_goals(arrays, path, scenario, agents, dim)),
-        "delta": _frozen(_delta(arrays, path, scenario, dim)),
+        "goals": _frozen(goals),
+        "delta": _frozen(delta),
         "disturbances": None if disturbances is None else _frozen(disturbances),
+        "bodies": _frozen(_bodies(arrays, path, scenario, delta, agents)),
     }
 
 
@@ -532,6 +547,24 @@ def _delta(arrays: dict[str, np.ndarray], path: Path, scenario: Scenario | None,
     if not np.all(np.isfinite(delta) & (delta > 0)):
         raise RunDataError(f"{path}: 'delta' must be finite and > 0, got {_short(str(delta.tolist()))}")
     return np.broadcast_to(delta.reshape(-1), (dim,)).copy()
+
+
+def _bodies(
+    arrays: dict[str, np.ndarray], path: Path, scenario: Scenario | None, delta: np.ndarray, agents: int
+) -> np.ndarray:
+    """(M, d) body half-sizes: the trajectory's ``bodies`` (finite, > 0), else the scenario's, else
+    delta / 2 for every agent (the default body of a folder written before bodies existed)."""
+    dim = delta.size
+    if "bodies" not in arrays:
+        if scenario is not None:
+            return scenario.bodies
+        return np.tile(delta / 2.0, (agents, 1))
+    bodies = np.asarray(arrays["bodies"], float)
+    if bodies.shape != (agents, dim):
+        raise RunDataError(f"{path}: 'bodies' must have shape {(agents, dim)}, got {bodies.shape}")
+    if not np.all(np.isfinite(bodies) & (bodies > 0)):
+        raise RunDataError(f"{path}: 'bodies' must be finite and > 0")
+    return bodies
 
 
 def _read_steps(path: Path, steps: int, agents: int) -> Mapping[str, np.ndarray]:

@@ -10,6 +10,11 @@ constraints read. One ADMM iteration:
 2. averaging (the coordinator): z_j = mean of every copy of agent j's positions, its own included;
 3. multiplier step (inside each agent, at its next call): gamma_i += rho (v_i - z).
 
+Every pair (i, j) keeps the offset of its centres out of the box of half-size Delta_ij = b_i + b_j
+(the two bodies): the coordinator hands each agent the Delta_ij of each of its neighbours, and
+uses the same Delta_ij wherever it reasons about a pair (coupling reach, separating planes,
+conflict and safety checks, repair). Each agent's OCP holds the obstacles grown by its own body.
+
 It stops when the RMS primal residual ||v - z|| and the RMS dual residual rho ||z - z_prev|| are
 both below ``tol`` (metres), or at ``max_iter``. Each agent then applies its OWN plan's first
 input, which is always dynamically feasible. Multipliers and the agent's last solution are private
@@ -28,7 +33,7 @@ import numpy as np
 from swarmpc.formulation.nlp import CompiledNLP, NLPSolution, shift_blocks
 from swarmpc.formulation.ocp import OCPSettings, build_local
 from swarmpc.model.dynamics import discrete_matrices
-from swarmpc.model.geometry import box_exterior_distance, box_signed_distance
+from swarmpc.model.geometry import as_bodies, box_exterior_distance, box_signed_distance, largest_pair_delta
 from swarmpc.solvers.base import PlanStep, fallback_plan
 from swarmpc.solvers.executors import Executor, SerialExecutor
 from swarmpc.solvers.guesses import agent_guess_blocks, inputs_from_states, pair_guess_blocks
@@ -49,7 +54,7 @@ class ADMMConfig:
     closing_time: float = 0.0
     """Seconds of closing speed added to the coupling margin per pair: pairs whose guesses approach
     each other at relative speed v (inf-norm, largest over the horizon) couple within
-    delta + d_min + coupling_margin + closing_time * v."""
+    max(Delta_ij) + d_min + coupling_margin + closing_time * v."""
     stall_window: int | None = 5
     stall_rho_factor: float | None = 2.0
     rho_bounds: tuple[float, float] = (1e-2, 1e3)
@@ -84,7 +89,7 @@ class ADMMConfig:
     runs on everyone's plans before any is applied (docs/admm.md)."""
     plane_margin: float | None = None
     """None: every coupled pair holds copies of each other (OBCA and consensus). A margin [m]: a
-    coupled pair whose guesses stay at least d_min + plane_margin beyond the delta box on one axis
+    coupled pair whose guesses stay at least d_min + plane_margin beyond its Delta_ij box on one axis
     at every constrained step is kept apart by a fixed separating plane per step instead, each
     agent keeping to its side with half the spare room (:func:`separating_planes`): no copies, no
     consensus, no iterations for that pair. A plane pair whose plans break the separation is
@@ -103,6 +108,8 @@ class LocalRequest:
     state: np.ndarray
     goal: np.ndarray
     delta: np.ndarray
+    """(n, d) Delta_ij of the pair with each neighbour, rows in the order of ``neighbours`` (a (d,)
+    value is taken for every neighbour); see :attr:`pair_deltas`."""
     rho: float
     rho_previous: float
     owner_weight: float
@@ -132,6 +139,12 @@ class LocalRequest:
     @property
     def num_planes(self) -> int:
         return 0 if self.plane_normals is None else len(self.plane_normals)
+
+    @property
+    def pair_deltas(self) -> np.ndarray:
+        """(n, d) Delta_ij of the pair with each neighbour (``delta`` broadcast when it is one value)."""
+        d = np.asarray(self.z_own).shape[0]
+        return np.broadcast_to(np.asarray(self.delta, float), (len(self.neighbours), d))
 
 
 @dataclass(frozen=True)
@@ -221,22 +234,41 @@ class LocalSolverLadder:
 class LocalAgentFactory:
     """Picklable recipe for agents' local solvers (built where the agents live; agents made by
     one factory object share its :class:`LocalSolverLadder` and, under hard constraints, its
-    rescue ladder: the same problems with soft pair constraints, built only when first needed)."""
+    rescue ladder: the same problems with soft pair constraints, built only when first needed).
+
+    With ``bodies`` (M, d), agent i's problems hold the obstacles grown by its body
+    (:meth:`OCPSettings.for_body`); agents whose grown obstacles are the same (every agent without
+    obstacles, every agent of one body size) share one pair of ladders. None: the obstacles of
+    ``settings`` as they are, for every agent.
+    """
 
     def __init__(
         self, settings: OCPSettings, slots: int, dynamic_copies: bool = True, seed_duals: bool = True,
-        warm_start: bool = False,
+        warm_start: bool = False, bodies: np.ndarray | None = None,
     ) -> None:
         self.settings = settings
         self.slots = slots
         self.dynamic_copies = dynamic_copies
         self.seed_duals = seed_duals
-        self.ladder = LocalSolverLadder(settings, slots, dynamic_copies, warm_start=warm_start)
-        self.rescue = (LocalSolverLadder(settings, slots, dynamic_copies, pair_collision="soft")
-                       if settings.collision == "hard" else None)
+        self.warm_start = warm_start
+        self.bodies = None if bodies is None else np.asarray(bodies, float)
+        self._ladders: dict[tuple[bytes, ...], tuple[LocalSolverLadder, LocalSolverLadder | None]] = {}
+        self.ladder, self.rescue = self._ladders_for(settings)
+
+    def _ladders_for(self, settings: OCPSettings) -> tuple[LocalSolverLadder, LocalSolverLadder | None]:
+        """The (ladder, rescue ladder) of problems with ``settings``' obstacles, made on first use."""
+        key = tuple(np.asarray(g, float).tobytes() for _, g in settings.obstacles)
+        if key not in self._ladders:
+            ladder = LocalSolverLadder(settings, self.slots, self.dynamic_copies, warm_start=self.warm_start)
+            rescue = (LocalSolverLadder(settings, self.slots, self.dynamic_copies, pair_collision="soft")
+                      if settings.collision == "hard" else None)
+            self._ladders[key] = (ladder, rescue)
+        return self._ladders[key]
 
     def __call__(self, agent: int) -> LocalAgent:
-        return LocalAgent(agent, self.settings, self.ladder, self.dynamic_copies, self.seed_duals, self.rescue)
+        settings = self.settings if self.bodies is None else self.settings.for_body(self.bodies[agent])
+        ladder, rescue = self._ladders_for(settings)
+        return LocalAgent(agent, settings, ladder, self.dynamic_copies, self.seed_duals, rescue)
 
 
 def trajectory_through(state: np.ndarray, z: np.ndarray, s: OCPSettings) -> np.ndarray:
@@ -323,7 +355,7 @@ class LocalAgent:
                 point[f"Uc{slot}"] = inputs_from_states(trajectory, s).T
             else:
                 point[f"C{slot}"] = z
-            point.update(pair_guess_blocks(str(slot), own - z.T, request.delta, s, seed))
+            point.update(pair_guess_blocks(str(slot), own - z.T, request.pair_deltas[slot], s, seed))
         return point
 
     def _copy_positions(self, solution: NLPSolution, slot: int) -> np.ndarray:
@@ -368,12 +400,12 @@ class LocalAgent:
 
     def _violation(self, states: np.ndarray, request: LocalRequest) -> float:
         """How far a plan falls short of the separation d_min from the pinned neighbours' plans:
-        the shortfall of the signed distance (negative inside the delta box, so depth counts),
-        summed over neighbours and constrained steps; 0 for a plan clear of them all."""
+        the shortfall of the signed distance (negative inside the pair's Delta_ij box, so depth
+        counts), summed over neighbours and constrained steps; 0 for a plan clear of them all."""
         assert request.neighbour_plans is not None
         d, first = self.settings.dim, self.settings.first_constrained_step
         others = request.neighbour_plans[0][:, first:, :d]
-        signed = box_signed_distance(states[None, first:, :d] - others, request.delta)
+        signed = box_signed_distance(states[None, first:, :d] - others, request.pair_deltas[:, None, :])
         return float(np.maximum(self.settings.d_min - signed, 0.0).sum())
 
     def _rescue(
@@ -383,8 +415,8 @@ class LocalAgent:
         ``fallback``) violates the separation from a pinned neighbour's plan: the same problem
         with soft pair constraints, always feasible, whose optimum violates the separation least.
         It is flown instead of the fallback only when it violates less. Two agents failing
-        together (each blind to the other's fallback) and a pair already inside each other's
-        delta box (every hard problem infeasible, both on fallbacks for good) have no other way
+        together (each blind to the other's fallback) and a pair whose bodies already
+        overlap (every hard problem infeasible, both on fallbacks for good) have no other way
         out. Returns (states, inputs) or None, and the time spent."""
         if self.rescue is None:
             return None, 0.0
@@ -397,7 +429,7 @@ class LocalAgent:
         assert request.neighbour_plans is not None
         for slot, other in enumerate(request.neighbour_plans[0]):
             offsets = fallback[first:, : s.dim] - other[first:, : s.dim]
-            point.update(pair_guess_blocks(str(slot), offsets, request.delta, soft))
+            point.update(pair_guess_blocks(str(slot), offsets, request.pair_deltas[slot], soft))
         solution = self.rescue.solve(params, point, fixed=pinned, copies=len(request.neighbours),
                                      planes=request.num_planes)
         if not solution.success:
@@ -470,7 +502,7 @@ class LocalAgent:
         params: dict[str, np.ndarray | float] = {
             "x0": request.state,
             "goal": request.goal,
-            "delta": request.delta,
+            "delta": request.pair_deltas.T,
             "rho": request.rho,
             "owner_weight": request.owner_weight,
             "Z": request.z_own,
@@ -627,7 +659,7 @@ def reach_radius(states: np.ndarray, settings: OCPSettings) -> np.ndarray:
 
 
 def reach_candidates(states: np.ndarray, settings: OCPSettings, delta: np.ndarray) -> np.ndarray:
-    """Pairs of agents whose plans can come within delta + d_min of each other during the horizon.
+    """Pairs of agents whose plans can come within Delta_ij + d_min of each other during the horizon.
 
     Parameters
     ----------
@@ -636,29 +668,31 @@ def reach_candidates(states: np.ndarray, settings: OCPSettings, delta: np.ndarra
     settings : OCPSettings
         Horizon, time step, ``d_min`` and the limits (see :func:`reach_radius`).
     delta : array_like
-        Half-size of the box each agent keeps the others out of (scalar or per axis).
+        One Delta (d,) for every pair, or the agents' body half-sizes (M, d) with
+        Delta_ij = b_i + b_j (:func:`swarmpc.model.geometry.as_bodies`).
 
     Returns
     -------
     ndarray of bool, shape (M, M)
         Symmetric; ``[i, j]`` is True when the current inf-norm gap between agents i and j is
-        below ``max(delta) + d_min + reach_i + reach_j``; the diagonal is False. Without limits
+        below ``max(Delta_ij) + d_min + reach_i + reach_j``; the diagonal is False. Without limits
         every pair (i != j) is a candidate.
 
     Notes
     -----
     Why: by the triangle inequality the gap at any step of the horizon is at least the current gap
     minus both agents' displacements, so a pair that is not a candidate stays at least
-    ``max(delta) + d_min`` apart (inf-norm) in any plans the two can have. On that axis the offset
-    is at least delta_axis + d_min, so the OBCA pair constraint holds without being imposed: such a
-    pair needs no copies, no certificate and no conflict check. Recomputed every MPC step.
+    ``max(Delta_ij) + d_min`` apart (inf-norm) in any plans the two can have. On that axis the
+    offset is at least Delta_ij,axis + d_min, so the OBCA pair constraint holds without being
+    imposed: such a pair needs no copies, no certificate and no conflict check. Recomputed every
+    MPC step.
     """
     states = np.asarray(states, float)
     d = settings.dim
     reach = reach_radius(states, settings)
     positions = states[:, :d]
     gaps = np.max(np.abs(positions[:, None, :] - positions[None, :, :]), axis=2)
-    limit = float(np.max(delta)) + settings.d_min
+    limit = largest_pair_delta(as_bodies(delta, len(states))) + settings.d_min
     candidates = gaps < limit + reach[:, None] + reach[None, :]
     np.fill_diagonal(candidates, False)
     return candidates
@@ -685,7 +719,7 @@ def separating_planes(
     first, second : ndarray, shape (d, K)
         The two agents' guessed positions at the constrained steps.
     delta : ndarray, shape (d,)
-        Half-size per axis of the box each agent keeps the others out of.
+        The pair's Delta_ij per axis (b_i + b_j): the box the offset of the two keeps out of.
     clearance : float
         Distance to keep beyond the box (d_min, plus :data:`PLANE_EXTRA` in the solver).
 
@@ -757,7 +791,12 @@ class EngagedBlocks:
 
 
 class ADMMSolver:
-    """Consensus-ADMM distributed MPC over an executor (serial by default)."""
+    """Consensus-ADMM distributed MPC over an executor (serial by default).
+
+    ``delta`` is one Delta (d,) for every pair, or the agents' body half-sizes (M, d): pair (i, j)
+    keeps Delta_ij = b_i + b_j and agent i's obstacles are grown by b_i
+    (:func:`swarmpc.model.geometry.as_bodies`).
+    """
 
     def __init__(
         self,
@@ -769,11 +808,13 @@ class ADMMSolver:
     ) -> None:
         self.settings = settings
         self.num_agents = num_agents
-        self.delta = np.asarray(delta, float)
+        self.bodies = as_bodies(delta, num_agents)
+        self._largest_delta = largest_pair_delta(self.bodies)
+        """(M, M) largest axis of each pair's Delta_ij."""
         self.config = config
         self.executor = executor or SerialExecutor()
         factory = LocalAgentFactory(settings, max(num_agents - 1, 1), config.dynamic_copies, config.seed_duals,
-                                    config.warm_start)
+                                    config.warm_start, bodies=self.bodies)
         self.executor.start(factory, range(num_agents))
         self._z: np.ndarray | None = None
         self._rho = config.rho
@@ -784,21 +825,26 @@ class ADMMSolver:
     def close(self) -> None:
         self.executor.close()
 
+    def pair_delta(self, first: Any, second: Any) -> np.ndarray:
+        """Delta_ij = b_i + b_j of agents ``first`` and ``second`` (indices or index arrays):
+        (d,) for one pair, (n, d) for n pairs."""
+        return self.bodies[first] + self.bodies[second]
+
     def neighbours(self, guess: np.ndarray, candidates: np.ndarray | None = None) -> list[tuple[int, ...]]:
         """Agents each agent couples with this step (symmetric).
 
         With ``coupling_margin`` None, every other agent (the paper's all-to-all copies). Otherwise
         only reach ``candidates`` (:func:`reach_candidates`; None: every pair) whose guessed
-        trajectories come within delta + d_min + margin (inf-norm) of each other at some
+        trajectories come within max(Delta_ij) + d_min + margin (inf-norm) of each other at some
         constrained step; candidate pairs left out are checked after convergence and coupled on
         demand if their plans conflict (see :meth:`plan`). A pair that is not a candidate cannot
-        come within delta + d_min during the horizon, so it needs no coupling.
+        come within Delta_ij + d_min during the horizon, so it needs no coupling.
         """
         M = self.num_agents
         if self.config.coupling_margin is None:
             return [tuple(j for j in range(M) if j != i) for i in range(M)]
         first, d = self.settings.first_constrained_step, self.settings.dim
-        reach = float(np.max(self.delta)) + self.settings.d_min + self.config.coupling_margin
+        reach = self._largest_delta + self.settings.d_min + self.config.coupling_margin
         positions = guess[:, first:, :d]
         gaps = np.max(np.abs(positions[:, None] - positions[None, :]), axis=3).min(axis=2)
         velocities = guess[:, :, d: 2 * d]
@@ -839,8 +885,8 @@ class ADMMSolver:
     ) -> tuple[list[tuple[int, int]], np.ndarray]:
         """Coupled pairs (i < j) that a separating plane keeps apart instead of copies, and the
         positions (M, K, d) the planes are drawn from. A pair qualifies when both guesses can be
-        followed (:meth:`reachable_guesses`) and clear the delta box by d_min + ``plane_margin``
-        on some axis at every constrained step (see ``ADMMConfig.plane_margin``), and, with
+        followed (:meth:`reachable_guesses`) and clear the pair's Delta_ij box by d_min +
+        ``plane_margin`` on some axis at every constrained step (see ``ADMMConfig.plane_margin``), and, with
         ``goals``, neither agent is within ``PLANE_GOAL_RADIUS`` of its goal: an agent parked at
         its goal keeps copies of those near it, so that it can move aside for them."""
         margin = self.config.plane_margin
@@ -850,14 +896,13 @@ class ADMMSolver:
         if goals is not None:
             d = self.settings.dim
             followable &= np.linalg.norm(states[:, :d] - goals[:, :d], axis=1) > PLANE_GOAL_RADIUS
-        half = np.asarray(self.delta, float).reshape(-1)
         pairs = []
         for i, n in enumerate(neighbours):
             if not followable[i]:
                 continue
             for j in n:
                 if j > i and followable[j]:
-                    excess = (np.abs(positions[i] - positions[j]) - half).max(axis=1).min()
+                    excess = (np.abs(positions[i] - positions[j]) - self.pair_delta(i, j)).max(axis=1).min()
                     if excess >= self.settings.d_min + margin:
                         pairs.append((i, j))
         return pairs, positions
@@ -868,7 +913,8 @@ class ADMMSolver:
         self._planes = [{} for _ in range(self.num_agents)]
         clearance = self.settings.d_min + PLANE_EXTRA
         for i, j in pairs:
-            normals, offsets_i, offsets_j = separating_planes(positions[i].T, positions[j].T, self.delta, clearance)
+            normals, offsets_i, offsets_j = separating_planes(
+                positions[i].T, positions[j].T, self.pair_delta(i, j), clearance)
             self._planes[i][j] = (normals, offsets_i)
             self._planes[j][i] = (-normals, offsets_j)
 
@@ -903,9 +949,8 @@ class ADMMSolver:
         self, results: list[LocalResult], neighbours: list[tuple[int, ...]], candidates: np.ndarray | None = None
     ) -> list[tuple[int, int]]:
         """Uncoupled candidate pairs (i < j) whose own plans come closer than the coupling would allow
-        (inf-norm below delta + d_min at some constrained step); ``candidates`` None: every pair."""
+        (inf-norm below max(Delta_ij) + d_min at some constrained step); ``candidates`` None: every pair."""
         M = self.num_agents
-        limit = float(np.max(self.delta)) + self.settings.d_min
         examine = np.triu(np.ones((M, M), bool) if candidates is None else candidates, k=1)
         for i, n in enumerate(neighbours):
             examine[i, list(n)] = False
@@ -914,7 +959,7 @@ class ADMMSolver:
             return []
         own = np.array([r.own for r in results])  # (M, d, K)
         gaps = np.max(np.abs(own[first] - own[second]), axis=1).min(axis=1)
-        hit = gaps < limit
+        hit = gaps < self._largest_delta[first, second] + self.settings.d_min
         return list(zip(first[hit].tolist(), second[hit].tolist()))
 
     def plans_feasible(self, results: list[LocalResult], pairs: np.ndarray) -> bool:
@@ -936,7 +981,7 @@ class ADMMSolver:
 
     def _own_plans_apart(self, results: list[LocalResult], first: np.ndarray, second: np.ndarray) -> bool:
         """The own plans of agents ``first[k]`` and ``second[k]`` keep a Euclidean distance of the
-        offset to the delta box of at least d_min / 2 at every constrained step. An RMS consensus
+        offset to the pair's Delta_ij box of at least d_min / 2 at every constrained step. An RMS consensus
         within tol still lets single steps of two own plans differ from the copies by more: half
         of d_min is kept as the margin, contact is at 0."""
         return bool(np.all(self._pairs_apart(results, first, second)))
@@ -947,7 +992,7 @@ class ADMMSolver:
         if first.size == 0:
             return np.ones(0, bool)
         own = np.array([r.own for r in results])  # (M, d, K)
-        half = np.asarray(self.delta, float).reshape(-1, 1)
+        half = self.pair_delta(first, second)[:, :, None]  # (n, d, 1)
         outside = box_exterior_distance(own[first] - own[second], half, axis=1)
         return np.all(outside >= 0.5 * self.settings.d_min, axis=1)
 
@@ -974,7 +1019,7 @@ class ADMMSolver:
             z = np.transpose(guess[:, first:, : s.dim], (0, 2, 1)).copy()
         else:
             z = np.concatenate([self._z[:, :, 1:], self._z[:, :, -1:]], axis=2)
-        candidates = reach_candidates(states, s, self.delta)
+        candidates = reach_candidates(states, s, self.bodies)
         neighbours = self.neighbours(guess, candidates)
         planed, plane_positions = self.plane_pairs(states, guess, neighbours, goals)
         self._set_planes(plane_positions, planed)
@@ -1116,15 +1161,15 @@ class ADMMSolver:
 
     def _stranded_fallbacks(self, results: list[LocalResult]) -> list[tuple[int, int]]:
         """(fallback agent, other agent) pairs whose plans come closer than d_min / 2 (signed
-        distance to the delta box) at a constrained step: a fallback nobody re-planned around,
+        distance to the pair's Delta_ij box) at a constrained step: a fallback nobody re-planned around,
         or two agents failing together, each blind to the other's fallback."""
         fell = [r.agent for r in results if r.fallback]
         if not fell:
             return []
         own = np.array([r.own for r in results])  # (M, d, K)
-        half = np.asarray(self.delta, float).reshape(1, -1, 1)
         pairs = []
         for i in fell:
+            half = self.pair_delta(i, slice(None))[:, :, None]  # (M, d, 1)
             signed = box_signed_distance(own[i][None] - own, half, axis=1).min(axis=1)
             signed[i] = np.inf
             pairs += [(i, int(j)) for j in np.flatnonzero(signed < 0.5 * self.settings.d_min)]
@@ -1169,7 +1214,7 @@ class ADMMSolver:
             agent=i,
             state=states[i],
             goal=goals[i],
-            delta=self.delta,
+            delta=self.pair_delta(i, list(neighbours)),
             rho=rho,
             rho_previous=rho_previous,
             owner_weight=self.config.owner_weight if neighbours else 0.0,
@@ -1199,7 +1244,7 @@ class ADMMSolver:
         the agents after it respect; it re-plans once more at the end, against everyone's final
         plans, since a plan that respects all of them keeps every pair it is in feasible. If it
         still fails, its fallback is final, and the agents repaired before it never saw it: each
-        neighbour whose plan comes within delta + d_min of that fallback re-plans once more
+        neighbour whose plan comes within max(Delta_ij) + d_min of that fallback re-plans once more
         against every final plan (spread M = 128 had a collision without this; docs/admm.md).
         ``agents``: re-plan only these (in this order) and then their neighbours as above; None:
         every coupled agent, highest index first."""
@@ -1229,11 +1274,10 @@ class ADMMSolver:
             if not repaired[i].success and i not in retried:
                 retried.add(i)
                 order.append(i)
-        limit = float(np.max(self.delta)) + self.settings.d_min
         for failed in [k for k in range(self.num_agents) if not repaired[k].success]:
             for i in neighbours[failed]:
                 gap = np.max(np.abs(repaired[i].own - repaired[failed].own), axis=0).min()
-                if repaired[i].success and gap < limit:
+                if repaired[i].success and gap < self._largest_delta[i, failed] + self.settings.d_min:
                     replan(i)
         return repaired
 
@@ -1323,21 +1367,22 @@ class ADMMSolver:
     ) -> EngagedBlocks:
         """The consensus blocks of engaged pairs: a coupled pair is engaged when, in either
         agent's problem, its own plan comes within d_min + ``margin`` of its copy of the other
-        (Euclidean distance to the delta box) at some constrained step, or the two own plans do. A pair that is not
+        (Euclidean distance to the pair's Delta_ij box) at some constrained step, or the two own
+        plans do. A pair that is not
         engaged has slack certificates on both sides: its copies shape nobody's plan, so their
         disagreement need not be iterated away (the own plans are still checked for mutual
         feasibility before they are applied)."""
-        half = np.asarray(self.delta, float).reshape(-1, 1)
         pairs: set[tuple[int, int]] = set()
         limit = self.settings.d_min + margin
 
-        def near(a: np.ndarray, b: np.ndarray) -> bool:
-            return bool(box_exterior_distance(a - b, half, axis=0).min() < limit)
+        def near(a: np.ndarray, b: np.ndarray, half: np.ndarray) -> bool:
+            return bool(box_exterior_distance(a - b, half[:, None], axis=0).min() < limit)
 
         for r in results:
             for slot, j in enumerate(neighbours[r.agent]):
+                half = self.pair_delta(r.agent, j)
                 # close to its copy in i's problem, or close in the plans the two would fly
-                if near(r.own, r.copies[slot]) or near(r.own, results[j].own):
+                if near(r.own, r.copies[slot], half) or near(r.own, results[j].own, half):
                     pairs.add((min(r.agent, j), max(r.agent, j)))
         own = np.zeros(self.num_agents, bool)
         for i, j in pairs:

@@ -7,13 +7,19 @@ import time
 import numpy as np
 
 from swarmpc.formulation.nlp import NLPSolution, shift_blocks
-from swarmpc.formulation.ocp import OCPSettings, build_centralized, pair_tag
+from swarmpc.formulation.ocp import OCPSettings, agent_pairs, build_centralized, pair_tag
+from swarmpc.model.geometry import as_bodies
 from swarmpc.solvers.base import PlanStep, fallback_plan
 from swarmpc.solvers.guesses import agent_guess_blocks, pair_guess_blocks
 
 
 class CentralizedSolver:
-    """Solves the global OCP with IPOPT; built once, warm-started from its shifted solution."""
+    """Solves the global OCP with IPOPT; built once, warm-started from its shifted solution.
+
+    ``delta`` is one Delta (d,) for every pair, or the agents' body half-sizes (M, d): pair (i, j)
+    keeps Delta_ij = b_i + b_j and agent i's obstacles are grown by b_i
+    (:func:`swarmpc.model.geometry.as_bodies`).
+    """
 
     def __init__(
         self, settings: OCPSettings, num_agents: int, delta: np.ndarray, seed_duals: bool = True
@@ -21,8 +27,11 @@ class CentralizedSolver:
         self.settings = settings
         self.seed_duals = seed_duals
         self.num_agents = num_agents
-        self.delta = np.asarray(delta, float)
-        self.nlp = build_centralized(settings, num_agents)
+        self.bodies = as_bodies(delta, num_agents)
+        self.pairs = agent_pairs(num_agents)
+        self.pair_deltas = np.array([self.bodies[i] + self.bodies[j] for i, j in self.pairs]).reshape(-1, settings.dim)
+        self.agent_settings = [settings.for_body(b) for b in self.bodies]
+        self.nlp = build_centralized(settings, num_agents, bodies=self.bodies)
         self._previous: NLPSolution | None = None
         self._previous_plan: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -35,17 +44,16 @@ class CentralizedSolver:
         s, first = self.settings, self.settings.first_constrained_step
         point: dict[str, np.ndarray] = {}
         for i in range(self.num_agents):
-            point.update(agent_guess_blocks(str(i), guess[i], s, seed and self.seed_duals))
-        for i in range(self.num_agents):
-            for j in range(i + 1, self.num_agents):
-                offsets = guess[i, first:, : s.dim] - guess[j, first:, : s.dim]
-                point.update(pair_guess_blocks(pair_tag(i, j), offsets, self.delta, s, seed and self.seed_duals))
+            point.update(agent_guess_blocks(str(i), guess[i], self.agent_settings[i], seed and self.seed_duals))
+        for (i, j), delta in zip(self.pairs, self.pair_deltas):
+            offsets = guess[i, first:, : s.dim] - guess[j, first:, : s.dim]
+            point.update(pair_guess_blocks(pair_tag(i, j), offsets, delta, s, seed and self.seed_duals))
         return point
 
     def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep:
         """One MPC step from measured ``states`` (M, 2d) towards ``goals`` (M, 2d)."""
         started = time.perf_counter()
-        params: dict[str, np.ndarray] = {"delta": self.delta}
+        params: dict[str, np.ndarray] = {"delta": self.pair_deltas.T}
         for i in range(self.num_agents):
             params[f"x0{i}"] = states[i]
             params[f"goal{i}"] = goals[i]
