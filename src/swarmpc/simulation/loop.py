@@ -1,52 +1,36 @@
-"""The receding-horizon closed loop: guess, solve, apply the first inputs, record, repeat."""
+"""The receding-horizon closed loop: a controller, a plant, and the record of what happened.
+
+Each step the loop asks the plant what its sensors measure, lets the
+:class:`~swarmpc.simulation.controller.Controller` turn that into inputs (guess, deadlock goals,
+solve, first input), applies them to the plant and records the true states, the inputs, the
+solver's record and how far the plant strayed from the nominal model. The loop itself only
+decides when to stop (every agent at its goal, ``max_steps``, or a stop request).
+"""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Protocol
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from swarmpc.config import Scenario
-from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.model.dynamics import DoubleIntegrator
+from swarmpc.simulation.controller import (
+    Controller,
+    MPCSolver,
+    close_solver,
+    deadlock_resolver,
+    make_solver,
+)
 from swarmpc.simulation.deadlock import DeadlockResolver
-from swarmpc.simulation.disturbance import DisturbanceModel, planner_delta
-from swarmpc.simulation.guessing import GuessProvider
+from swarmpc.simulation.plant import Plant, make_plant
 from swarmpc.simulation.results import RunResult, StepRecord
-from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, default_coupling
-from swarmpc.solvers.base import PlanStep
-from swarmpc.solvers.centralized import CentralizedSolver
 from swarmpc.solvers.executors import Executor
 
+__all__ = ["MPCSolver", "ProgressCallback", "StopFlag", "goal_reached", "make_solver", "simulate"]
+
 ProgressCallback = Callable[[int, int, np.ndarray], None]
-
-
-class MPCSolver(Protocol):
-    def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep: ...
-
-
-def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None = None) -> MPCSolver:
-    """The scenario's solver (``solver.method``), built once for the run.
-
-    The solver keeps agents apart by the planner's delta (the true one plus any tightening).
-    """
-    delta = planner_delta(scn)
-    if scn.solver.method == "centralized":
-        return CentralizedSolver(settings, scn.num_agents, delta, scn.solver.seed_duals)
-    margin, closing_time = default_coupling(scn.collision)
-    if scn.solver.coupling_margin is not None:  # the scenario's margin, as given
-        margin, closing_time = scn.solver.coupling_margin, 0.0
-    config = ADMMConfig(
-        rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
-        adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
-        coupling_margin=margin, closing_time=closing_time, reuse_tol=scn.solver.reuse_tol,
-        relaxation=scn.solver.relaxation, component_stop=scn.solver.component_stop,
-        plane_margin=scn.solver.plane_margin,
-    )
-    return ADMMSolver(settings, scn.num_agents, delta, config, executor)
 
 
 def goal_reached(states: np.ndarray, goals: np.ndarray, scn: Scenario) -> np.ndarray:
@@ -64,72 +48,77 @@ class StopFlag:
     requested: bool = False
 
 
+@dataclass
+class _Recording:
+    """What a run keeps of each step: true states, inputs, solver records, plant mismatch."""
+
+    states: list[np.ndarray]
+    inputs: list[np.ndarray] = field(default_factory=list)
+    records: list[StepRecord] = field(default_factory=list)
+    disturbances: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, states: np.ndarray, inputs: np.ndarray, record: StepRecord, disturbance: np.ndarray) -> None:
+        self.states.append(states)
+        self.inputs.append(inputs)
+        self.records.append(record)
+        self.disturbances.append(disturbance)
+
+    def arrays(self, scn: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(states (T+1, M, 2d), inputs (T, M, d), disturbances (T, M, 2d))."""
+        steps = len(self.inputs)
+        return (
+            np.array(self.states),
+            np.array(self.inputs).reshape(steps, scn.num_agents, scn.dim),
+            np.array(self.disturbances).reshape(steps, scn.num_agents, scn.state_dim),
+        )
+
+
 def simulate(
     scn: Scenario,
     solver: MPCSolver | None = None,
     progress: ProgressCallback | None = None,
     stop_flag: StopFlag | None = None,
     executor: Executor | None = None,
+    plant: Plant | None = None,
 ) -> RunResult:
     """Run the scenario in closed loop until every agent is at its goal or ``max_steps``.
 
-    With a ``disturbance`` block the planner sees the measured state (true + measurement noise)
-    and the true state receives process noise after each step; the stop test and every metric use
-    the true state.
+    The plant is the scenario's (``plant.type``) unless one is given. With a ``disturbance`` block
+    the controller sees the measured state (true + measurement noise) and the true state receives
+    process noise after each step; the stop test and every metric use the true state. A solver or
+    executor handed in is closed when the loop ends, as the callers expect.
     """
     scn = scn.revalidated()  # the lists of a frozen scenario can still be changed in place
     started = time.perf_counter()
-    settings = OCPSettings.from_scenario(scn)
-    solver = solver or make_solver(scn, settings, executor)
-    model = DoubleIntegrator(scn.dim, scn.dt, scn.discretization)
-    guesser = GuessProvider(scn, settings)
-    deadlocks = DeadlockResolver(
-        scn.num_agents, scn.dim, seed=scn.seed, clearance=planner_delta(scn) + scn.d_min, bounds=scn.bounds()
-    )
-    noise = DisturbanceModel.from_scenario(scn)
-    disturbances: list[np.ndarray] = []
+    plant = plant if plant is not None else make_plant(scn)
     goals = scn.goal_states()
-    states = scn.start_states()
-    trajectory = [states]
-    inputs: list[np.ndarray] = []
-    records: list[StepRecord] = []
-    previous: PlanStep | None = None
-    interrupted = False
-    for step in range(scn.stop.max_steps):
-        if goal_reached(states, goals, scn).all():
-            break
-        if stop_flag is not None and stop_flag.requested:
-            interrupted = True
-            break
-        measured = states + noise.measurement()
-        step_goals = guesser.goals(measured, deadlocks.goals(step, measured, goals))
-        guess = guesser.guesses(measured, step_goals, previous)
-        plan = solver.plan(measured, step_goals, guess)
-        control = plan.inputs[:, 0]
-        disturbance = noise.process()
-        states = model.step(states, control) + disturbance
-        disturbances.append(disturbance)
-        trajectory.append(states)
-        inputs.append(control)
-        records.append(StepRecord.from_plan(plan))
-        previous = plan
-        if progress is not None:
-            progress(step + 1, scn.stop.max_steps, states)
-    close = getattr(solver, "close", None)
-    if callable(close):
-        close()
-    result_states = np.array(trajectory)
-    result_inputs = np.array(inputs).reshape(len(inputs), scn.num_agents, scn.dim)
-    return RunResult.create(
+    resolver = deadlock_resolver(scn, DeadlockResolver)  # this module's name: a test may swap the class
+    with Controller(scn, executor, solver=solver, deadlocks=resolver) as controller:
+        recording = _Recording(states=[plant.reset()])
+        interrupted = False
+        for step in range(scn.stop.max_steps):
+            if goal_reached(recording.states[-1], goals, scn).all():
+                break
+            if stop_flag is not None and stop_flag.requested:
+                interrupted = True
+                break
+            control = controller.step(plant.measure())
+            states = plant.step(control)
+            recording.add(states, control, controller.last_record, plant.last_disturbance)  # type: ignore[arg-type]
+            if progress is not None:
+                progress(step + 1, scn.stop.max_steps, states)
+        if solver is not None or executor is not None:
+            close_solver(controller.solver)
+    states, inputs, disturbances = recording.arrays(scn)
+    result = RunResult.create(
         scenario=scn,
-        states=result_states,
-        inputs=result_inputs,
-        records=records,
-        deadlock_events=deadlocks.events,
+        states=states,
+        inputs=inputs,
+        records=recording.records,
+        deadlock_events=controller.deadlock_events,
         interrupted=interrupted,
         wall_time=time.perf_counter() - started,
-        rrt_stats=guesser.rrt_stats,
-        disturbances=np.array(disturbances).reshape(len(inputs), scn.num_agents, scn.state_dim)
-        if scn.disturbance.has_process_noise
-        else None,
+        rrt_stats=controller.rrt_stats,
+        disturbances=None if plant.nominal else disturbances,
     )
+    return replace(result, summary={**result.summary, "plant": plant.describe()})

@@ -1,0 +1,215 @@
+"""The swarm's model predictive controller, one call per control period.
+
+:class:`Controller` is what runs on (or next to) the robots: give it the states the sensors
+measured, it returns every agent's acceleration for the next period. Between calls it keeps what
+receding-horizon control carries over: the previous plan (the warm start and the fallback of a
+failed solve), the initial-guess provider (with its stored RRT paths), the deadlock resolver
+(stall counters, detours in progress) and the solver with its executor (built once). The closed
+loop of :func:`swarmpc.simulation.loop.simulate` is this controller plus a plant.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Protocol
+
+import numpy as np
+
+from swarmpc.config import Scenario, load_scenario
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.simulation.deadlock import DeadlockResolver
+from swarmpc.simulation.disturbance import planner_bodies, planner_delta
+from swarmpc.simulation.guessing import GuessProvider
+from swarmpc.simulation.results import StepRecord
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, default_coupling
+from swarmpc.solvers.base import PlanStep
+from swarmpc.solvers.centralized import CentralizedSolver
+from swarmpc.solvers.executors import Executor, make_executor
+
+
+class MPCSolver(Protocol):
+    def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep: ...
+
+
+def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None = None) -> MPCSolver:
+    """The scenario's solver (``solver.method``), built once for the run.
+
+    The solver keeps each pair apart by the sum of the planner's bodies (the true ones grown by
+    any tightening), and each agent's body out of the obstacles.
+    """
+    delta = planner_bodies(scn)
+    if scn.solver.method == "centralized":
+        return CentralizedSolver(settings, scn.num_agents, delta, scn.solver.seed_duals)
+    margin, closing_time = default_coupling(scn.collision)
+    if scn.solver.coupling_margin is not None:  # the scenario's margin, as given
+        margin, closing_time = scn.solver.coupling_margin, 0.0
+    config = ADMMConfig(
+        rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
+        adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
+        coupling_margin=margin, closing_time=closing_time, reuse_tol=scn.solver.reuse_tol,
+        relaxation=scn.solver.relaxation, component_stop=scn.solver.component_stop,
+        plane_margin=scn.solver.plane_margin,
+    )
+    return ADMMSolver(settings, scn.num_agents, delta, config, executor)
+
+
+def deadlock_resolver(
+    scn: Scenario, factory: Callable[..., DeadlockResolver] = DeadlockResolver
+) -> DeadlockResolver:
+    """The scenario's deadlock resolver: agents kept the planner's clearance apart, detours kept
+    inside the workspace, jitter seeded by the scenario."""
+    return factory(
+        scn.num_agents, scn.dim, seed=scn.seed, clearance=planner_delta(scn) + scn.d_min, bounds=scn.bounds()
+    )
+
+
+def close_solver(solver: Any) -> None:
+    """Close ``solver`` (and with it the executor its local solves run on) if it can be closed."""
+    close = getattr(solver, "close", None)
+    if callable(close):
+        close()
+
+
+def _array(value: Any, name: str) -> np.ndarray:
+    """``value`` as a new finite float array; ValueError (one line) otherwise."""
+    try:
+        array = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected an array of numbers") from None
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name}: must be finite (found NaN or inf)")
+    return array
+
+
+class Controller:
+    """Distributed MPC of a scenario's swarm, stepped by the caller (do-mpc's ``make_step``).
+
+    Parameters
+    ----------
+    scenario
+        The swarm, its limits, costs, obstacles, default goals and solver settings.
+    executor
+        Where ADMM's local solves run: None (in this process), an executor's name (``"serial"``,
+        ``"thread"``, ``"process"``, ``"ray"``: the controller creates it and :meth:`close`
+        releases it) or an executor object (owned by the caller, who closes it).
+    solver
+        A solver built elsewhere (owned by the caller; ``executor`` is then not used).
+    deadlocks
+        A deadlock resolver built elsewhere (default: :func:`deadlock_resolver`).
+
+    After each :meth:`step`, :attr:`plan` holds the predicted plans and :attr:`last_record` the
+    solver's record of the step. Use it in a ``with`` block, or call :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        executor: Executor | str | None = None,
+        *,
+        solver: MPCSolver | None = None,
+        deadlocks: DeadlockResolver | None = None,
+    ) -> None:
+        scn = scenario.revalidated()  # the lists of a frozen scenario can still be changed in place
+        self.scenario = scn
+        self.settings = OCPSettings.from_scenario(scn)
+        self._owns_solver = solver is None
+        self._owns_executor = executor is None or isinstance(executor, str)
+        if solver is None:
+            solver = make_solver(scn, self.settings, self._executor(executor))
+        self.solver = solver
+        self.guesser = GuessProvider(scn, self.settings)
+        self.deadlocks = deadlocks or deadlock_resolver(scn)
+        self.goals = scn.goal_states()
+        """(M, 2d) the goals a :meth:`step` without ``goals`` steers to (the scenario's)."""
+        self.steps = 0
+        self._plan: PlanStep | None = None
+        self._record: StepRecord | None = None
+        self._closed = False
+
+    def _executor(self, executor: Executor | str | None) -> Executor | None:
+        """The executor object for ``executor``: created here when given by name."""
+        if not isinstance(executor, str):
+            return executor
+        if self.scenario.solver.method != "admm" and executor != "serial":
+            raise ValueError(f"executor: {executor} only applies to solver.method admm")
+        return make_executor(executor)
+
+    @classmethod
+    def from_file(cls, path: str | Path, executor: Executor | str | None = None) -> Controller:
+        """A controller for the scenario file at ``path`` (validated; ScenarioError otherwise)."""
+        return cls(load_scenario(path), executor)
+
+    # ----------------------------------------------------------------- what the last step left
+    @property
+    def plan(self) -> PlanStep | None:
+        """The last step's plans: ``states`` (M, N+1, 2d), ``inputs`` (M, N, d); None before a step."""
+        return self._plan
+
+    @property
+    def last_record(self) -> StepRecord | None:
+        """The last step's solver record (times, iterations, residuals, fallbacks); None before a step."""
+        return self._record
+
+    @property
+    def deadlock_events(self) -> list[tuple[int, int]]:
+        """(step, agent) of every detour the deadlock resolver started."""
+        return self.deadlocks.events
+
+    @property
+    def rrt_stats(self) -> dict[str, int] | None:
+        return self.guesser.rrt_stats
+
+    # ----------------------------------------------------------------- control
+    def step(self, measured_states: Any, goals: Any = None) -> np.ndarray:
+        """Every agent's input (M, d) for the next period, from the measured states (M, 2d).
+
+        ``goals`` replaces the default goals for this step: (M, 2d) states or (M, d) positions
+        (at rest). The controller guesses, lets the deadlock resolver swap in detours, solves, and
+        keeps the plan as the next step's warm start.
+        """
+        if self._closed:
+            raise RuntimeError("controller: closed; build a new one")
+        measured = self._measured(measured_states)
+        targets = self.goals if goals is None else self._goals(goals)
+        step_goals = self.guesser.goals(measured, self.deadlocks.goals(self.steps, measured, targets))
+        guess = self.guesser.guesses(measured, step_goals, self._plan)
+        plan = self.solver.plan(measured, step_goals, guess)
+        self._plan, self._record = plan, StepRecord.from_plan(plan)
+        self.steps += 1
+        return plan.inputs[:, 0].copy()
+
+    make_step = step
+
+    def _measured(self, value: Any) -> np.ndarray:
+        m, n = self.scenario.num_agents, self.scenario.state_dim
+        array = _array(value, "measured_states")
+        if array.shape != (m, n):
+            raise ValueError(
+                f"measured_states: expected shape ({m}, {n}) (agents, [position, velocity]), got {array.shape}"
+            )
+        return array
+
+    def _goals(self, value: Any) -> np.ndarray:
+        m, d = self.scenario.num_agents, self.scenario.dim
+        array = _array(value, "goals")
+        if array.shape == (m, d):
+            return np.hstack([array, np.zeros((m, d))])
+        if array.shape != (m, 2 * d):
+            raise ValueError(f"goals: expected shape ({m}, {2 * d}) or ({m}, {d}) positions, got {array.shape}")
+        return array
+
+    # ----------------------------------------------------------------- lifetime
+    def close(self) -> None:
+        """Release what the controller created (its solver's own or named executor); idempotent."""
+        if not self._closed and self._owns_solver and self._owns_executor:
+            close_solver(self.solver)
+        self._closed = True
+
+    def __enter__(self) -> Controller:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 trace: TracebackType | None) -> None:
+        self.close()

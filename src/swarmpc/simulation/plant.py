@@ -1,0 +1,112 @@
+"""What the controller's inputs drive: the plant of the closed loop.
+
+A :class:`Plant` holds the true states of all agents. The loop asks it what the sensors report
+(:meth:`Plant.measure`), hands the measurement to the controller and applies the controller's
+inputs for one sampling period (:meth:`Plant.step`). Two plants come with swarmpc:
+
+* :class:`DoubleIntegratorPlant`: the planner's own model, exactly, plus the scenario's seeded
+  ``disturbance`` noise (the default, and what every run did before plants existed);
+* :class:`~swarmpc.simulation.mujoco_plant.MuJoCoPlant`: rigid bodies in the MuJoCo physics
+  engine (``plant: {type: mujoco}``), imported only when a scenario asks for it.
+
+Whatever the plant, a run folder keeps ``states[k+1] = f(states[k], inputs[k]) + disturbances[k]``
+with ``f`` the nominal model: a plant reports in :attr:`Plant.last_disturbance` how far its last
+step landed from the nominal one, and :attr:`Plant.nominal` says whether there is anything to
+report at all.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+
+from swarmpc.config import PlantConfig, Scenario
+from swarmpc.model.dynamics import DoubleIntegrator
+from swarmpc.simulation.disturbance import DisturbanceModel
+
+
+class Plant(Protocol):
+    """The true system of the closed loop: M agents with states [p, v] of 2d entries each."""
+
+    nominal: bool
+    """True when the states follow the nominal model exactly (no disturbances to record)."""
+    last_disturbance: np.ndarray
+    """(M, 2d) true state after the last :meth:`step` minus the nominal model's step from the state
+    before it (zeros before the first step)."""
+
+    def reset(self) -> np.ndarray:
+        """Put every agent at its start; return the true states (M, 2d)."""
+        ...
+
+    def step(self, inputs: np.ndarray) -> np.ndarray:
+        """Apply ``inputs`` (M, d) for one sampling period; return the true states (M, 2d)."""
+        ...
+
+    def measure(self) -> np.ndarray:
+        """The states (M, 2d) the sensors report now (the true ones plus any measurement noise)."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """What ``summary.json`` records of the plant (its settings and anything it counted)."""
+        ...
+
+
+def checked_inputs(inputs: Any, num_agents: int, dim: int) -> np.ndarray:
+    """``inputs`` as a finite float array of shape (M, d); ValueError (one line) otherwise."""
+    try:
+        array = np.asarray(inputs, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"inputs: expected an array of numbers of shape ({num_agents}, {dim})") from None
+    if array.shape != (num_agents, dim):
+        raise ValueError(f"inputs: expected shape ({num_agents}, {dim}) (agents, dim), got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError("inputs: must be finite (found NaN or inf)")
+    return array
+
+
+class DoubleIntegratorPlant:
+    """The planner's discrete double integrator, with the scenario's process and measurement noise.
+
+    The noise comes from :class:`~swarmpc.simulation.disturbance.DisturbanceModel`, seeded by the
+    scenario: measurement noise is drawn in :meth:`measure`, process noise in :meth:`step`, so a
+    loop that measures, plans and steps draws them in the same order every run (and nothing at
+    all while the ``disturbance`` block is off). :meth:`reset` restarts both streams.
+    """
+
+    def __init__(self, scn: Scenario) -> None:
+        self.scenario = scn
+        self.model = DoubleIntegrator(scn.dim, scn.dt, scn.discretization)
+        self.nominal = not scn.disturbance.has_process_noise
+        self.noise = DisturbanceModel.from_scenario(scn)
+        self.states = scn.start_states()
+        self.last_disturbance = np.zeros_like(self.states)
+
+    def reset(self) -> np.ndarray:
+        self.noise = DisturbanceModel.from_scenario(self.scenario)
+        self.states = self.scenario.start_states()
+        self.last_disturbance = np.zeros_like(self.states)
+        return self.states
+
+    def measure(self) -> np.ndarray:
+        return self.states + self.noise.measurement()
+
+    def step(self, inputs: np.ndarray) -> np.ndarray:
+        control = checked_inputs(inputs, self.scenario.num_agents, self.scenario.dim)
+        disturbance = self.noise.process()
+        self.states = self.model.step(self.states, control) + disturbance
+        self.last_disturbance = disturbance
+        return self.states
+
+    def describe(self) -> dict[str, Any]:
+        block = self.scenario.plant
+        return (block if block.type == "double_integrator" else PlantConfig()).model_dump()
+
+
+def make_plant(scn: Scenario) -> Plant:
+    """The scenario's plant (``plant.type``); MuJoCo is imported only when it is asked for."""
+    if scn.plant.type == "mujoco":
+        from swarmpc.simulation.mujoco_plant import MuJoCoPlant
+
+        return MuJoCoPlant(scn)
+    return DoubleIntegratorPlant(scn)
