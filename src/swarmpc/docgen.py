@@ -6,9 +6,11 @@
   :data:`MEANINGS`; a schema field with neither raises :class:`MissingDocError`.
 * :func:`cli_reference`: every command and parameter of the ``swarmpc`` command line, read from
   the typer app.
+* :func:`run_folder_reference`: every file, ``summary.json`` key and array of a run folder, from
+  the tables of :mod:`swarmpc.simulation.contract`, and the export formats of :mod:`swarmpc.export`.
 
 ``python -m swarmpc.docgen`` prints the scenario reference (``> docs/scenario-reference.md``);
-``python -m swarmpc.docgen --write`` writes both pages into ``docs/``.
+``python -m swarmpc.docgen --write`` writes every page into ``docs/``.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
 from swarmpc.config import Scenario, scenario_from_dict
+from swarmpc.simulation.contract import ARRAYS, CONDITIONS, FILES, SUMMARY_KEYS
 
 # Meanings of the schema fields that carry no ``Field(description=...)``, by dotted path
 # (list items as ``[]``). Keep one line each; the table shows type and default separately.
@@ -307,6 +310,10 @@ def cli_reference() -> str:
         "with status 2, writing nothing.",
         "",
     ]
+    own = [p for p in group.params if not getattr(p, "hidden", False)]
+    if own:
+        lines += ["Options of `swarmpc` itself, before the command (`swarmpc --version`):", ""]
+        lines += _param_table(own, root)
     for name, command in group.commands.items():
         ctx = command.make_context(name, [], parent=root, resilient_parsing=True)
         params = [p for p in command.params if not getattr(p, "hidden", False)]
@@ -317,25 +324,122 @@ def cli_reference() -> str:
         if any(getattr(p, "param_type_name", "") == "option" for p in params):
             usage.append("[OPTIONS]")
         lines += [f"## `swarmpc {name}`", "", (command.help or "").strip(), "", "```", " ".join(usage), "```", ""]
-        if not params:
-            continue
-        lines += ["| parameter | type | default | meaning |", "|---|---|---|---|"]
-        for param in params:
-            if getattr(param, "param_type_name", "") == "argument":
-                flags = f"`{param.name.upper()}`"
-            else:
-                flags = ", ".join(f"`{opt}`" for opt in [*param.opts, *param.secondary_opts])
-            help_text = getattr(param, "help", None) or ""
-            lines.append(
-                f"| {flags} | {_param_type(param, ctx)} | {_cell(_param_default(param))} | {_cell(help_text)} |"
-            )
-        lines.append("")
+        if params:
+            lines += _param_table(params, ctx)
     return "\n".join(lines)
 
 
+def _param_table(params: list[Any], ctx: Any) -> list[str]:
+    """A markdown table of command-line parameters (type, default, help), then a blank line."""
+    lines = ["| parameter | type | default | meaning |", "|---|---|---|---|"]
+    for param in params:
+        if getattr(param, "param_type_name", "") == "argument":
+            flags = f"`{param.name.upper()}`"
+        else:
+            flags = ", ".join(f"`{opt}`" for opt in [*param.opts, *param.secondary_opts])
+        help_text = getattr(param, "help", None) or ""
+        lines.append(f"| {flags} | {_param_type(param, ctx)} | {_cell(_param_default(param))} | {_cell(help_text)} |")
+    return [*lines, ""]
+
+
+# ----------------------------------------------------------------------------------- run folder
+RUN_FOLDER_INTRO = """\
+A run folder is what `swarmpc run` (or `write_run(result, DIR)` of `swarmpc.simulation.results`)
+writes: the files below, in a folder written under a temporary name and moved into place when
+complete. `swarmpc.simulation.rundata.load_run(DIR)` reads it back (checked, as read-only arrays);
+plain `json` and `numpy.load` read it too. Numbers are SI: metres, seconds.
+
+Shapes use **T** (closed-loop steps taken, `summary.json` `steps`), **M** (agents), **d** (spatial
+dimension, 2 or 3) and **I** (the most ADMM iterations of any step). Positions come first in a
+state, velocities after: a state is [p, v] with 2d entries. The *present* column says when an
+entry is there:
+"""
+
+
+def _condition_table() -> list[str]:
+    return ["| present | meaning |", "|---|---|", *(f"| `{code}` | {_cell(text)} |" for code, text in CONDITIONS.items())]
+
+
+def _file_tables() -> list[str]:
+    """The files table, the summary keys and one table per archive."""
+    lines = ["## Files", "", "| file | present | content |", "|---|---|---|"]
+    lines += [f"| {', '.join(f'`{n}`' for n in f.name.split(', '))} | `{f.when}` | {_cell(f.meaning)} |" for f in FILES]
+    lines += ["", "## `summary.json`", "",
+              "A JSON object; dotted keys are nested (`step_time_ms.median`). Non-finite numbers are written as `null`.",
+              "", "| key | type | units | present | meaning |", "|---|---|---|---|---|"]
+    lines += [f"| `{k.key}` | {_cell(k.type)} | {k.units} | `{k.when}` | {_cell(k.meaning)} |" for k in SUMMARY_KEYS]
+    for archive in dict.fromkeys(a.file for a in ARRAYS):
+        lines += ["", f"## `{archive}`", "", "| array | shape | dtype | units | present | meaning |",
+                  "|---|---|---|---|---|---|"]
+        lines += [
+            f"| `{a.name}` | {a.shape} | {a.dtype} | {a.units} | `{a.when}` | {_cell(a.meaning)} |"
+            for a in ARRAYS if a.file == archive
+        ]
+    return [*lines, ""]
+
+
+def _column_label(name: str) -> str:
+    """A CSV column of :data:`swarmpc.export.CSV_COLUMNS`, ``{axis}`` spelled out per axis."""
+    if "{axis}" not in name:
+        return f"`{name}`"
+    return ", ".join(f"`{name.format(axis=axis)}`" for axis in "xyz")
+
+
+def _export_tables() -> list[str]:
+    """The CSV columns, the MCAP topics and the ``/metrics`` fields of ``swarmpc export``."""
+    from swarmpc.export import CSV_COLUMNS, FRAME_ID, MCAP_TOPICS, METRICS, csv_header
+
+    lines = [
+        "## Exports (`swarmpc export`)", "",
+        "`swarmpc export RUN_DIR --format csv|mcap` writes `RUN_DIR/run.csv` or `RUN_DIR/run.mcap` (or `--out`).",
+        "", "### CSV", "",
+        "One header row, then one row per state k and agent i, numbers in full precision (they read back",
+        "exactly). A 2D run has no `z` columns:", "",
+        "```", ",".join(csv_header(2)), ",".join(csv_header(3)), "```", "",
+        "| column | units | meaning |", "|---|---|---|",
+        *(f"| {_column_label(c.name)} | {c.units} | {_cell(c.meaning)} |" for c in CSV_COLUMNS),
+        "", "### MCAP (Foxglove)", "",
+        "Open the file in Foxglove (*Open local file*), add a 3D panel (the scene is in the frame",
+        f"`{FRAME_ID}`, in metres) and a Plot panel for `/metrics`. Time stamps are `t` in nanoseconds (the",
+        "run starts at 0). Scenes are `foxglove.SceneUpdate` messages (protobuf; the schema is embedded);",
+        "an entity replaces the entity of the same id from the topic's previous message.", "",
+        "| topic | schema | messages | content |", "|---|---|---|---|",
+        *(f"| `{t.topic}` | `{t.schema}` | {t.messages} | {_cell(t.meaning)} |" for t in MCAP_TOPICS),
+        "", "Fields of the `/metrics` messages (JSON):", "",
+        "| field | type | units | meaning |", "|---|---|---|---|",
+        *(f"| `{m.name}` | {m.type} | {m.units} | {_cell(m.meaning)} |" for m in METRICS),
+    ]
+    return [*lines, ""]
+
+
+def run_folder_reference() -> str:
+    """The run-folder reference (markdown), generated from :mod:`swarmpc.simulation.contract`
+    and the export tables of :mod:`swarmpc.export`."""
+    lines = [
+        "# Run folder reference",
+        "",
+        (
+            "<!-- generated by `python -m swarmpc.docgen` from swarmpc/simulation/contract.py and "
+            "swarmpc/export.py; do not edit by hand -->"
+        ),
+        "",
+        RUN_FOLDER_INTRO.rstrip(),
+        "",
+        *_condition_table(),
+        "",
+        *_file_tables(),
+        *_export_tables(),
+    ]
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
 def write_all(docs: Path) -> list[Path]:
-    """Write both reference pages into ``docs``; returns the written files."""
-    pages = {"scenario-reference.md": scenario_reference(), "cli-reference.md": cli_reference()}
+    """Write every reference page into ``docs``; returns the written files."""
+    pages = {
+        "scenario-reference.md": scenario_reference(),
+        "cli-reference.md": cli_reference(),
+        "run-folder-reference.md": run_folder_reference(),
+    }
     written = []
     for filename, text in pages.items():
         path = docs / filename
@@ -353,8 +457,11 @@ def main(argv: list[str]) -> int:
     if argv == ["--cli"]:
         sys.stdout.write(cli_reference())
         return 0
+    if argv == ["--run-folder"]:
+        sys.stdout.write(run_folder_reference())
+        return 0
     if argv:
-        print("usage: python -m swarmpc.docgen [--cli | --write]", file=sys.stderr)
+        print("usage: python -m swarmpc.docgen [--cli | --run-folder | --write]", file=sys.stderr)
         return 2
     sys.stdout.write(scenario_reference())
     return 0

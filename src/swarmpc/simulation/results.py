@@ -26,6 +26,7 @@ import numpy as np
 from swarmpc.config import Scenario, scenario_to_yaml
 from swarmpc.simulation.metrics import summarize
 from swarmpc.simulation.outdir import OutputError, RunFolderTarget, write_marker
+from swarmpc.simulation.quality import quality_summary
 from swarmpc.solvers.base import PlanStep
 
 
@@ -125,6 +126,7 @@ class RunResult:
         if rrt_stats is not None:
             summary["rrt"] = rrt_stats
         summary["agent_step_time_ms"] = _agent_time_stats(records)
+        summary.update(quality_summary(states, scenario.goal_states(), scenario.dt, scenario.stop.goal_tolerance))
         return cls(
             scenario=scenario,
             t=np.arange(states.shape[0]) * scenario.dt,
@@ -239,6 +241,7 @@ def _write_contents(result: RunResult, folder: Path) -> None:
         "goals": scn.goal_states(),
         "delta": delta,
         "dt": np.asarray(scn.dt),
+        "bodies": scn.bodies,
     }
     if result.disturbances is not None:
         # states[k+1] = f(states[k], inputs[k]) + disturbances[k]
