@@ -12,8 +12,10 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-from concurrent.futures import ProcessPoolExecutor
+import sys
 from pathlib import Path
+
+from swarmpc.batch import Task, run_batch
 
 OUT = Path(__file__).parent / "out"
 
@@ -73,13 +75,16 @@ def main() -> None:
     args = parser.parse_args()
     deltas = [0.3] if args.quick else [0.1, 0.3, 0.5]
     cases = list(itertools.product(["paper-2d", "paper-3d"], deltas, ["hard", "soft"], ["centralized", "admm"]))
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        rows = list(pool.map(run_case, cases))
+    finished = sorted(run_batch([Task(run_case, (case,)) for case in cases], args.jobs), key=lambda f: f.index)
+    rows = [f.value for f in finished if f.ok]
+    failed = [f"{cases[f.index]}: {f.error}" for f in finished if not f.ok]
     OUT.mkdir(exist_ok=True)
     (OUT / "admm_vs_centralized.json").write_text(json.dumps(rows, indent=2))
     text = table(rows)
     (OUT / "admm_vs_centralized.md").write_text(text + "\n")
     print(text)
+    if failed:
+        sys.exit(f"{len(failed)} case(s) failed and are not in the table:\n" + "\n".join(failed))
 
 
 if __name__ == "__main__":

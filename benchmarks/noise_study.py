@@ -17,12 +17,14 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import multiprocessing
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from swarmpc.batch import Task, run_batch
 
 OUT = Path(__file__).parent / "out"
 SCENARIOS = ("paper-2d", "circle-8")
@@ -88,17 +90,24 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     cases = list(itertools.product(SCENARIOS, LEVELS, TIGHTENING, range(args.seeds)))
     cases.sort(key=lambda c: c[0] != "circle-8")  # long runs first
-    rows = []
-    with multiprocessing.get_context("spawn").Pool(args.jobs, maxtasksperchild=1) as pool:
-        for row in pool.imap_unordered(run_case, cases):
-            rows.append(row)
-            print(f"[{len(rows)}/{len(cases)}] {row}", flush=True)
+    rows: list[dict[str, Any]] = []
+    failed: list[str] = []
+    tasks = [Task(run_case, (case,)) for case in cases]
+    # a fresh worker process per case (with more than one job; one job runs them in this process)
+    for done, finished in enumerate(run_batch(tasks, args.jobs, max_tasks_per_worker=1), 1):
+        if finished.ok:
+            rows.append(finished.value)
+        else:
+            failed.append(f"{cases[finished.index]}: {finished.error}")
+        print(f"[{done}/{len(cases)}] {finished.value if finished.ok else 'FAILED ' + failed[-1]}", flush=True)
     rows.sort(key=lambda r: (r["scenario"], r["level"], r["tightening"], r["seed"]))
     command = f"python benchmarks/noise_study.py --seeds {args.seeds} --jobs {args.jobs}"
     (args.out / "noise_study.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
     text = markdown(rows, command)
     (args.out / "noise_study.md").write_text(text)
     print(text)
+    if failed:
+        sys.exit(f"{len(failed)} case(s) failed and are not in the tables:\n" + "\n".join(failed))
 
 
 if __name__ == "__main__":

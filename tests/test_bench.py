@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from swarmpc.batch import run_batch
 from swarmpc.bench import (
     BenchCase,
     CaseOutcome,
@@ -151,7 +152,7 @@ def test_real_case_recomputes_safety_from_the_trajectory():
 def test_run_bench_writes_table_and_json(tmp_path, monkeypatch):
     monkeypatch.setattr("swarmpc.bench.run_case", lambda case, runs_dir: outcome(case.family, case.agents, case.seed,
                                                                         case.method, 100.0))
-    monkeypatch.setattr("swarmpc.bench.ProcessPoolExecutor", _InlinePool)
+    monkeypatch.setattr("swarmpc.bench.run_batch", _in_process)
     markdown, data = run_bench(tmp_path, quick=True, families=["circle", "random"])
     text = markdown.read_text()
     assert text.count("| circle |") == 2 and text.count("| random |") == 2
@@ -160,26 +161,9 @@ def test_run_bench_writes_table_and_json(tmp_path, monkeypatch):
         run_bench(tmp_path, families=["blob"])
 
 
-class _InlinePool:
-    """Runs submitted work at once in this process (the pool itself is not under test here)."""
-
-    def __init__(self, max_workers: int) -> None:
-        self.max_workers = max_workers
-
-    def __enter__(self) -> _InlinePool:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-    def submit(self, fn, *args):
-        from concurrent.futures import Future
-        future: Future = Future()
-        try:
-            future.set_result(fn(*args))
-        except Exception as err:  # a real pool hands the error over with the result
-            future.set_exception(err)
-        return future
+def _in_process(tasks, jobs, **options):
+    """The batch in this process, in order (the pool itself is tested in test_batch.py)."""
+    return run_batch(tasks, 1, **options)
 
 
 def test_bench_command_writes_its_table(tmp_path):
@@ -249,8 +233,7 @@ def test_a_bench_cut_short_keeps_the_runs_it_finished(tmp_path, monkeypatch):
         return outcome(case.family, case.agents, case.seed, case.method, 100.0)
 
     monkeypatch.setattr("swarmpc.bench.run_case", run_or_fail)
-    monkeypatch.setattr("swarmpc.bench.ProcessPoolExecutor", _InlinePool)
-    monkeypatch.setattr("swarmpc.bench.as_completed", list)  # finishing in the order submitted
+    monkeypatch.setattr("swarmpc.bench.run_batch", _in_process)  # finishing in the order submitted
     with pytest.raises(RuntimeError):
         run_bench(tmp_path, families=["random"], sizes=[4], seeds=2, central_max_agents=0)
     data = json.loads((tmp_path / "bench.json").read_text())

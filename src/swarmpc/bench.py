@@ -5,9 +5,16 @@ Families (all with Δ = 0.3 and the paper's weights): ``circle`` (2D antipodal s
 apart and >= 0.1 m from each other's delta box, acceleration <= 1 m/s² per axis, goal tolerance
 0.1 m) and ``spread`` (``random`` at constant density: the box grows as (M / 8)^(1/3) per side, so
 neighbourhoods stay the size they have at M = 8 and the work per agent can be read against M
-alone). Each case is one closed-loop run in its own process; collisions and separations come from
-the run's trajectory, never from a flag.
+alone). Each case is one closed-loop run; cases run side by side in worker processes
+(:mod:`swarmpc.batch`), or one after another in this process with one job. Collisions and
+separations come from the run's trajectory, never from a flag.
 Numbers are wall-clock measurements on whatever machine runs it: read them as such.
+
+Closed-loop quality (:mod:`swarmpc.simulation.quality`): each run's makespan and largest overshoot,
+and for an ADMM run that brought every agent to its goal, the interaction ratio, its makespan over
+the latest of its agents' lone-agent times (each agent simulated alone, same scenario and
+controller). The lone runs are made here and not by every ``swarmpc run``: they are M extra closed
+loops, a cost only a benchmark should pay.
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import closing
 from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 from types import MappingProxyType
@@ -26,13 +33,15 @@ from typing import Any
 
 import numpy as np
 
-from swarmpc.config import Scenario
+from swarmpc.batch import Finished, QuietStart, Task, run_batch
+from swarmpc.config import Scenario, scenario_from_dict
 from swarmpc.model.geometry import count_collisions, inf_separation_ratio
 from swarmpc.scenarios import builtin_scenario
-from swarmpc.simulation.metrics import final_goal_distance
-from swarmpc.simulation.results import write_run
 from swarmpc.simulation.loop import StopFlag, simulate
-from swarmpc.solvers.executors import available_cores, make_executor
+from swarmpc.simulation.metrics import final_goal_distance
+from swarmpc.simulation.quality import interaction_ratio, time_to_goal
+from swarmpc.simulation.results import write_run
+from swarmpc.solvers.executors import Executor, available_cores, make_executor
 
 FAMILIES = ("circle", "sphere", "random", "spread")
 SEEDED_FAMILIES = ("random", "spread")
@@ -103,6 +112,15 @@ class CaseOutcome:
     planes_mean: float | None = None
     """Separating planes an agent kept to, averaged over agents and steps (ADMM with
     ``solver.plane_margin``; None: centralised or a report written before it was recorded)."""
+    makespan_s: float | None = None
+    """Latest time to goal over the agents (``summary.json`` ``makespan_s``); None unless every
+    agent reached, or in a report written before it was recorded."""
+    overshoot_max_m: float | None = None
+    """Largest overshoot past the goal of any agent [m] (``summary.json`` ``overshoot_m``)."""
+    lone_makespan_s: float | None = None
+    """Latest of the agents' lone-agent times to goal (ADMM runs that reached every goal only)."""
+    interaction_ratio: float | None = None
+    """``makespan_s`` over ``lone_makespan_s``: 1 when the agents did not slow each other down."""
 
 
 
@@ -110,10 +128,7 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
     """Run one case in closed loop, stopping cleanly when its wall-time budget is spent; with
     ``runs_dir``, keep its run folder (``summary.json``, ``trajectory.npz``) there too."""
     scn = case.scenario()
-    options: dict[str, Any] = {}
-    if case.workers and case.executor in ("process", "ray"):
-        options = {"workers" if case.executor == "process" else "actors": case.workers}
-    executor = make_executor(case.executor, **options) if case.method == "admm" else None
+    executor = _case_executor(case)
     stop = StopFlag()
     timer = threading.Timer(case.budget_s, lambda: setattr(stop, "requested", True))
     timer.start()
@@ -122,7 +137,11 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         result = simulate(scn, stop_flag=stop, executor=executor)
     finally:
         timer.cancel()
+        if executor is not None:  # this function made it, this function closes it (interrupted too)
+            executor.close()
     wall = time.perf_counter() - started
+    summary = result.summary
+    lone = lone_agent_times(scn) if case.method == "admm" and summary["makespan_s"] is not None else None
     if runs_dir is not None:
         write_run(result, runs_dir / case.label, overwrite=True)
     d = scn.dim
@@ -130,7 +149,6 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
     delta = scn.delta_vector
     collisions = count_collisions(positions, delta)
     separation = float(inf_separation_ratio(positions, delta).min()) if scn.num_agents > 1 else float("inf")
-    summary = result.summary
     records = result.records
     return CaseOutcome(
         case=case,
@@ -150,7 +168,37 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         worst_goal_distance=float(final_goal_distance(result.states, scn).max()),
         copies_mean=_mean([r.copies for r in records if r.copies is not None]),
         planes_mean=_mean([r.planes for r in records if r.planes is not None]),
+        makespan_s=summary["makespan_s"],
+        overshoot_max_m=max(summary["overshoot_m"], default=None),
+        lone_makespan_s=None if lone is None or np.isnan(lone).any() else float(lone.max()),
+        interaction_ratio=None if lone is None else interaction_ratio(summary["makespan_s"], lone),
     )
+
+
+def _case_executor(case: BenchCase) -> Executor | QuietStart | None:
+    """Where an ADMM case's local solves run (None for a centralised case). Worker processes are
+    started with SIGINT and SIGTERM held (:class:`swarmpc.batch.QuietStart`): a Ctrl-C meant for
+    the benchmark must not kill a worker that is still starting, with a traceback, before it can
+    ignore the signal."""
+    if case.method != "admm":
+        return None
+    options: dict[str, Any] = {}
+    if case.workers and case.executor in ("process", "ray"):
+        options = {"workers" if case.executor == "process" else "actors": case.workers}
+    executor = make_executor(case.executor, **options)
+    return QuietStart(executor) if case.executor == "process" else executor
+
+
+def lone_agent_times(scn: Scenario) -> np.ndarray:
+    """Each agent's time to goal when it is alone: the same scenario (weights, limits, obstacles,
+    solver) with only that agent, in closed loop; (M,), NaN for an agent that never reached."""
+    data = scn.model_dump()
+    times = np.full(scn.num_agents, np.nan)
+    for i, agent in enumerate(data["agents"]):
+        alone = scenario_from_dict({**data, "agents": [agent]})
+        result = simulate(alone)
+        times[i] = time_to_goal(result.states, alone.goal_states(), alone.dt, alone.stop.goal_tolerance)[0]
+    return times
 
 
 def _mean(values: Sequence[Any]) -> float | None:
@@ -194,6 +242,8 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
         agent = [t for o in admm for t in o.agent_step_ms]
         iterations = [k for o in admm for k in o.iterations]
         reached_times = [o.time_to_goal_s for o in admm if o.time_to_goal_s is not None]
+        makespans = [o.makespan_s for o in admm if o.makespan_s is not None]
+        ratios = [o.interaction_ratio for o in admm if o.interaction_ratio is not None]
         rows.append({
             "family": family, "agents": m, "runs": len(admm),
             "all_reached_rate": float(np.mean([o.all_reached for o in admm])) if admm else None,
@@ -201,6 +251,9 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
             "timed_out": sum(o.timed_out for o in admm),
             "min_separation_ratio": min((o.min_separation_ratio for o in admm), default=None),
             "time_to_goal_s_median": _percentile(reached_times, 50),
+            "makespan_s_median": _percentile(makespans, 50),
+            "overshoot_m_max": max((o.overshoot_max_m for o in admm if o.overshoot_max_m is not None), default=None),
+            "interaction_ratio_median": _percentile(ratios, 50),
             "step_ms_median": _percentile(steps, 50), "step_ms_p95": _percentile(steps, 95),
             "agent_ms_median": _percentile(agent, 50), "agent_ms_p95": _percentile(agent, 95),
             "iterations_mean": float(np.mean(iterations)) if iterations else None,
@@ -293,6 +346,7 @@ def _cell(value: Any, fmt: str = "{:.1f}") -> str:
 def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The benchmark table (one line per family and swarm size)."""
     header = ("| family | M | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
+              "| makespan s | overshoot max m | makespan vs lone "
               "| step ms median | p95 | per-agent ms median | p95 | ADMM it. mean | max | failures "
               "| cost vs central | central step ms | copies per agent | planes per agent |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
@@ -302,7 +356,9 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
             _cell(None if r["all_reached_rate"] is None else 100 * r["all_reached_rate"], "{:.0f}%"),
             _cell(None if r["collision_free_rate"] is None else 100 * r["collision_free_rate"], "{:.0f}%"),
             str(r["timed_out"]), _cell(r["min_separation_ratio"], "{:.2f}"),
-            _cell(r["time_to_goal_s_median"]), _cell(r["step_ms_median"]), _cell(r["step_ms_p95"]),
+            _cell(r["time_to_goal_s_median"]), _cell(r.get("makespan_s_median")),
+            _cell(r.get("overshoot_m_max"), "{:.2f}"), _cell(r.get("interaction_ratio_median"), "{:.2f}"),
+            _cell(r["step_ms_median"]), _cell(r["step_ms_p95"]),
             _cell(r["agent_ms_median"]), _cell(r["agent_ms_p95"]), _cell(r["iterations_mean"]),
             _cell(r["iterations_max"]), str(r["solver_failures"]),
             _cell(r["cost_gap_pct_median"], "{:+.1f}%"), _cell(r["central_step_ms_median"]),
@@ -330,10 +386,13 @@ def run_bench(
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
 
-    Cases run ``jobs`` at a time in separate processes (each case itself uses ``executor``);
-    per-step times are therefore measured with ``jobs`` runs sharing the machine. ``save_runs``
-    keeps every run's folder under ``out/runs``; ``plane_margin`` sets ``solver.plane_margin`` of
-    every ADMM case.
+    Cases run ``jobs`` at a time in worker processes (one job: in this process), each with
+    ``executor`` for its own local solves; per-step times are therefore measured with ``jobs`` runs
+    sharing the machine. The report is rewritten after every finished case, so an interrupted
+    study (``KeyboardInterrupt``, raised once the workers are down) keeps what it measured. A case
+    that fails is logged and left out; the others still run, and a ``RuntimeError`` naming the
+    failures follows the last report. ``save_runs`` keeps every run's folder under ``out/runs``;
+    ``plane_margin`` sets ``solver.plane_margin`` of every ADMM case.
     """
     unknown = sorted(set(families) - set(FAMILIES))
     if unknown:
@@ -346,21 +405,34 @@ def run_bench(
     jobs = jobs or (1 if executor != "serial" else available_cores())
     machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
     outcomes: list[CaseOutcome] = []
+    failures: list[str] = []
     started = time.perf_counter()
     paths = (out / "bench.md", out / "bench.json")
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = {pool.submit(run_case, case, out / "runs" if save_runs else None): case for case in cases}
-        for done, future in enumerate(as_completed(futures), 1):
-            outcome = future.result()
-            outcomes.append(outcome)
-            c = outcome.case
-            log(f"[{done}/{len(cases)}] {c.family} M={c.agents} seed={c.seed} {c.method}: "
-                f"{outcome.steps} steps, reached={outcome.all_reached}, collisions={outcome.collisions}, "
-                f"{outcome.wall_time_s:.0f} s")
+    tasks = [Task(run_case, (case, out / "runs" if save_runs else None)) for case in cases]
+    with closing(run_batch(tasks, jobs)) as finished:
+        for done, result in enumerate(finished, 1):
+            log(f"[{done}/{len(cases)}] {_progress(cases[result.index], result)}")
+            if not result.ok:
+                failures.append(f"{cases[result.index].label}: {result.error}")
+                continue
+            outcomes.append(result.value)
             paths = write_report(out, outcomes, machine, time.perf_counter() - started, planned=len(cases))
     if not outcomes:
-        paths = write_report(out, outcomes, machine, time.perf_counter() - started)
+        paths = write_report(out, outcomes, machine, time.perf_counter() - started, planned=len(cases))
+    if failures:
+        raise RuntimeError(f"{len(failures)} of {len(cases)} bench cases failed (the report holds the others), "
+                           f"first {failures[0]}")
     return paths
+
+
+def _progress(case: BenchCase, result: Finished) -> str:
+    """The progress line of a finished case (without its ``[k/n]``)."""
+    name = f"{case.family} M={case.agents} seed={case.seed} {case.method}"
+    if not result.ok:
+        return f"{name}: FAILED ({result.error})"
+    outcome: CaseOutcome = result.value
+    return (f"{name}: {outcome.steps} steps, reached={outcome.all_reached}, collisions={outcome.collisions}, "
+            f"{outcome.wall_time_s:.0f} s")
 
 
 def _write_atomically(path: Path, text: str) -> None:
@@ -429,6 +501,10 @@ _OUTCOME_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyT
     "solver_failures": (_is_count, "a count"), "wall_time_s": (_is_finite, "a finite number"),
     "unreached": (_is_count_list, "a list of agent indices"), "worst_goal_distance": (_is_finite, "a finite number"),
     "copies_mean": (_is_finite_or_none, "a number or null"), "planes_mean": (_is_finite_or_none, "a number or null"),
+    "makespan_s": (_is_finite_or_none, "a number or null"),
+    "overshoot_max_m": (_is_finite_or_none, "a number or null"),
+    "lone_makespan_s": (_is_finite_or_none, "a number or null"),
+    "interaction_ratio": (_is_finite_or_none, "a number or null"),
 })  # fmt: skip
 """What each field of a ``bench.json`` run must hold (what :func:`write_report` writes)."""
 

@@ -1,6 +1,6 @@
 """The paper's experiment set (Section V): define it, run it, collect it, write figures and a report.
 
-``swarmpc reproduce`` calls :func:`reproduce`. The set (design.md section 10): the built-in
+``swarmpc reproduce`` calls :func:`reproduce`. The set (docs/paper-reproduction.md): the built-in
 ``paper-2d`` and ``paper-3d`` swaps (M = 4, N = 10, dt = 0.1, Q = 0.1 I, R = I, Qf = I) for
 Δ ∈ {0.1, 0.3, 0.5}, hard and soft OBCA, consensus ADMM, each also with the centralised solver
 for reference; plus the initial-guess study at Δ = 0.3 (straight, shifted, RRT, auto). Every run
@@ -8,22 +8,23 @@ is an ordinary run folder under ``OUT/runs/``; the report reads its numbers back
 folders' ``summary.json``, so a number in the report is always one a run wrote. Seeds are fixed
 (scenario ``seed`` 0, which also seeds RRT).
 
-Runs go to a pool of worker processes (``jobs``); each run is single-threaded, so per-step times
-are comparable between runs only as far as the machine is not oversubscribed.
+Runs go to a pool of worker processes (``jobs``, :mod:`swarmpc.batch`); each run is
+single-threaded, so per-step times are comparable between runs only as far as the machine is not
+oversubscribed.
 """
 
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import time
 from collections.abc import Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from contextlib import closing
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from swarmpc.batch import Task, error_line, run_batch
 from swarmpc.config import scenario_to_yaml
 from swarmpc.experiments.figures import write_figures
 from swarmpc.experiments.plan import (
@@ -76,7 +77,8 @@ from swarmpc.simulation.rundata import SUMMARY_FILE, read_summary
 
 
 def run_one(spec: RunSpec, folder: str) -> RunOutcome:
-    """Simulate one spec and write its run folder (executed in a worker process)."""
+    """Simulate one spec and write its run folder (in a worker process); a failure becomes the
+    outcome's one-line error, so the report can name it."""
     from swarmpc.simulation.loop import simulate
     from swarmpc.simulation.results import write_run
 
@@ -84,9 +86,8 @@ def run_one(spec: RunSpec, folder: str) -> RunOutcome:
     error = None
     try:
         write_run(simulate(spec.build()), folder, overwrite=True)
-    except Exception as err:  # one failed run must not lose the others
-        message = str(err).splitlines()[0] if str(err) else ""
-        error = f"{type(err).__name__}: {message}"
+    except Exception as err:  # noqa: BLE001 - one failed run must not lose the others
+        error = error_line(err)
     return RunOutcome(spec, folder, error, time.perf_counter() - started, time.process_time() - cpu)
 
 
@@ -103,7 +104,10 @@ def _reusable(spec: RunSpec, folder: Path) -> bool:
 def execute(
     specs: Sequence[RunSpec], runs_dir: Path, jobs: int, reuse: bool = False, log: Log | None = None
 ) -> list[RunOutcome]:
-    """Run every spec into ``runs_dir/<name>``, ``jobs`` at a time; outcomes in ``specs`` order."""
+    """Run every spec into ``runs_dir/<name>``, ``jobs`` at a time, one progress line each as it
+    finishes; outcomes in ``specs`` order. With ``reuse``, a complete folder of the same scenario
+    counts as done. Ctrl-C or SIGTERM: ``KeyboardInterrupt`` once the workers are down, with the
+    finished run folders in place (``reuse`` skips them next time)."""
     say = log or (lambda _line: None)
     runs_dir.mkdir(parents=True, exist_ok=True)
     outcomes: dict[str, RunOutcome] = {}
@@ -114,27 +118,16 @@ def execute(
             outcomes[spec.name] = RunOutcome(spec, str(folder), None, 0.0, 0.0, reused=True)
         else:
             todo.append(spec)
-    total, done = len(specs), len(outcomes)
-
-    def report(outcome: RunOutcome) -> None:
-        nonlocal done
-        done += 1
-        outcomes[outcome.spec.name] = outcome
-        status = (f"FAILED ({outcome.error})" if outcome.error
-                  else f"{outcome.seconds:.0f} s ({outcome.cpu_seconds:.0f} s CPU)")
-        say(f"[{done}/{total}] {outcome.spec.name}: {status}")
-
-    if jobs <= 1 or len(todo) <= 1:
-        for spec in todo:
-            report(run_one(spec, str(runs_dir / spec.name)))
-    else:
-        context = multiprocessing.get_context("spawn")  # no fork of a process that may hold threads
-        with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=context) as pool:
-            futures: list[Future[RunOutcome]] = [
-                pool.submit(run_one, spec, str(runs_dir / spec.name)) for spec in todo
-            ]
-            for future in as_completed(futures):
-                report(future.result())
+    tasks = [Task(run_one, (spec, str(runs_dir / spec.name))) for spec in todo]
+    with closing(run_batch(tasks, max(jobs, 1))) as finished:
+        for done, result in enumerate(finished, len(outcomes) + 1):
+            spec = todo[result.index]
+            # run_one reports a failed run itself; this is a failed worker (it died, or could not pickle)
+            outcome = result.value if result.ok else RunOutcome(spec, str(runs_dir / spec.name), result.error, 0, 0)
+            outcomes[spec.name] = outcome
+            status = (f"FAILED ({outcome.error})" if outcome.error
+                      else f"{outcome.seconds:.0f} s ({outcome.cpu_seconds:.0f} s CPU)")
+            say(f"[{done}/{len(specs)}] {spec.name}: {status}")
     return [outcomes[spec.name] for spec in specs]
 
 
