@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml constraints.txt
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(VENV)/bin/swarmpc run --overwrite
+	$(VENV)/bin/swarmpc run swap-2d --overwrite
 
 test: $(STAMP)
 	if [ -f scripts/install-browser.sh ]; then bash scripts/install-browser.sh; fi

@@ -20,7 +20,7 @@ from typing import Annotated, Any, NoReturn
 import numpy as np
 import typer
 
-from swarmpc._launch import caused_by_interrupt
+from swarmpc._interrupts import INTERRUPTED, caused_by_interrupt
 from swarmpc.config import MAX_AGENTS, Scenario, ScenarioError, load_scenario
 from swarmpc.simulation.outdir import OutputError, RunFolderTarget
 
@@ -55,7 +55,11 @@ class ExecutorName(str, Enum):
     ray = "ray"
 
 
-INTERRUPTED = 130  # the shell's status for a process ended by SIGINT
+class PlantName(str, Enum):
+    double_integrator = "double_integrator"
+    mujoco = "mujoco"
+
+
 
 
 class Interrupted(Exception):
@@ -115,6 +119,8 @@ def run(
         help="keep near, not engaged pairs apart by separating planes instead of copies [m]")] = None,
     initial_guess: Annotated[Guess | None, typer.Option(help="initial-guess strategy")] = None,
     max_steps: Annotated[int | None, typer.Option(help="MPC steps at most")] = None,
+    plant: Annotated[PlantName | None, typer.Option(
+        help="what the inputs drive: the ideal model or MuJoCo rigid bodies (settings: the scenario's plant:)")] = None,
     executor: Annotated[
         ExecutorName, typer.Option(help="where the ADMM agents' local solves run (admm only)")
     ] = ExecutorName.serial,
@@ -152,8 +158,12 @@ def run(
                 "stop.max_steps": max_steps,
             }
         )
+        if plant is not None:  # the double integrator takes none of the physics settings
+            physics = {} if plant is PlantName.double_integrator else scn.plant.model_dump()
+            scn = scn.with_updates(plant={**physics, "type": plant.value})
     except ScenarioError as err:
         fail(str(err))
+    check_plant_available(scn)
     target = reserve_output(out or Path("results") / scn.name, overwrite, scn)
     try:
         runner = build_executor(scn, executor, workers, address)
@@ -161,6 +171,14 @@ def run(
         target.discard()
         raise
     _run_and_write(scn, target, quiet, runner)
+
+
+def check_plant_available(scn: Scenario) -> None:
+    """A MuJoCo plant needs the ``mujoco`` package: one line before any work when it is missing."""
+    import importlib.util
+
+    if scn.plant.type == "mujoco" and importlib.util.find_spec("mujoco") is None:
+        fail("--plant: mujoco needs the mujoco package (pip install mujoco)")
 
 
 def reserve_output(path: Path, overwrite: bool, scn: Scenario) -> RunFolderTarget:
@@ -496,6 +514,27 @@ def view(
 
 
 @app.command()
+def export(
+    run_dir: Annotated[Path, typer.Argument(help="a run folder")],
+    format: Annotated[str, typer.Option(
+        "--format", help="csv (one row per agent and state) or mcap (scenes and metrics for Foxglove)")],
+    out: Annotated[Path | None, typer.Option(help="output file [RUN_DIR/run.FORMAT]")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out file")] = False,
+) -> None:
+    """Export a run for other tools: CSV, or MCAP that opens in Foxglove (see the run-folder reference)."""
+    from swarmpc.export import FORMATS, export_run
+    from swarmpc.simulation.rundata import RunDataError
+
+    if format not in FORMATS:
+        fail(f"--format: must be {' or '.join(FORMATS)}, got {format!r}")
+    try:
+        path = export_run(run_dir, format, out=out, overwrite=overwrite)
+    except (RunDataError, OutputError, OSError) as err:
+        fail(str(err).splitlines()[0])
+    typer.echo(str(path))
+
+
+@app.command()
 def reproduce(
     out: Annotated[Path, typer.Option(help="output folder")] = Path("results/reproduce"),
     quick: Annotated[bool, typer.Option("--quick", help="small plan (fewer deltas, 25 steps): a smoke test")] = False,
@@ -570,9 +609,29 @@ def bench(
                 log=lambda line: typer.echo(line, err=True), first_seed=first_seed, save_runs=save_runs,
                 plane_margin=plane_margin,
             )
+    except RuntimeError as err:  # some cases failed; the report holds the others
+        fail(str(err).splitlines()[0])
     except ValueError as err:
         fail(f"--{str(err).splitlines()[0]}")
     typer.echo(str(markdown))
+
+
+def _print_version(value: bool) -> None:
+    """``--version``: print ``swarmpc X.Y.Z`` (the installed package's version, defined once in
+    pyproject.toml) and exit 0 before any command is parsed."""
+    if value:
+        from swarmpc import __version__
+
+        typer.echo(f"swarmpc {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _global_options(
+    version: Annotated[bool, typer.Option(
+        "--version", is_eager=True, callback=_print_version, help="print the version and exit")] = False,
+) -> None:
+    """Distributed MPC for robot swarms (consensus ADMM + OBCA collision avoidance)."""
 
 
 def _terminate_as_interrupt(_signum: int, _frame: FrameType | None) -> None:
