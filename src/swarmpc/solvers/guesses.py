@@ -4,7 +4,7 @@ A guess is an (N+1, 2d) state trajectory per agent whose first row is the measur
 the inputs follow (velocity differences) and the certificates lambda (and soft slacks) follow from
 geometry (:mod:`swarmpc.solvers.dual_seed`), so a solver is seeded with a primal point that is
 consistent in every block. With ``seed_duals=False`` the certificates are left out and the solver
-starts them at 0 (the ablation measured in docs/initial-guesses.md).
+starts them at 0 (the comparison of both is in docs/lab/initial-guesses.md).
 """
 
 from __future__ import annotations
