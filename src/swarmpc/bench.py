@@ -35,7 +35,7 @@ import numpy as np
 
 from swarmpc.batch import Finished, QuietStart, Task, run_batch
 from swarmpc.config import Scenario, scenario_from_dict
-from swarmpc.model.geometry import count_collisions, inf_separation_ratio
+from swarmpc.model.geometry import body_separation_ratio, count_body_collisions
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.loop import StopFlag, simulate
 from swarmpc.simulation.metrics import final_goal_distance
@@ -146,9 +146,8 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         write_run(result, runs_dir / case.label, overwrite=True)
     d = scn.dim
     positions = result.states[:, :, :d]
-    delta = scn.delta_vector
-    collisions = count_collisions(positions, delta)
-    separation = float(inf_separation_ratio(positions, delta).min()) if scn.num_agents > 1 else float("inf")
+    collisions = count_body_collisions(positions, scn.bodies)
+    separation = float(body_separation_ratio(positions, scn.bodies).min()) if scn.num_agents > 1 else float("inf")
     records = result.records
     return CaseOutcome(
         case=case,

@@ -293,13 +293,9 @@ def nearest_distances(positions: np.ndarray) -> np.ndarray:
 
 
 def body_half_sizes(run: RunData) -> np.ndarray:
-    """(M, d) half-size of each agent's body per axis: the run's own (``RunData.body_half_sizes``,
-    the per-agent bodies of design section 13, where the reader has them) or Δ/2 for every agent,
-    the default body: two default bodies overlap exactly when ‖p_i − p_j‖_∞ < Δ."""
-    bodies = getattr(run, "body_half_sizes", None)
-    if bodies is None:
-        return np.tile(run.delta / 2, (run.num_agents, 1))
-    return np.asarray(bodies, float)
+    """(M, d) half-size of each agent's body per axis, as the run recorded them (Δ/2 for a run
+    written before bodies were recorded): two bodies overlap exactly when a collision is counted."""
+    return np.asarray(run.body_half_sizes, float)
 
 
 def timestamps_ns(run: RunData) -> np.ndarray:
