@@ -34,14 +34,8 @@ from swarmpc.simulation.contract import ARRAYS, CONDITIONS, FILES, SUMMARY_KEYS
 # Meanings of the schema fields that carry no ``Field(description=...)``, by dotted path
 # (list items as ``[]``). Keep one line each; the table shows type and default separately.
 MEANINGS: dict[str, str] = {
-    "name": "Scenario name: the default output folder is `results/<name>`; echoed in `summary.json`.",
     "dim": "Spatial dimension: 2 (ground robots) or 3 (drones). Every position below has `dim` entries.",
     "dt": "Sampling time [s] of the dynamics and of the MPC; > 0.",
-    "horizon": "MPC horizon N in steps; >= 2.",
-    "delta": (
-        "Half-size Δ [m] of the axis-aligned box around each agent, a scalar or one value per axis; > 0. "
-        "Agents i and j collide when |p_i − p_j| < Δ on every axis."
-    ),
     "collision": (
         "OBCA form: `hard` (certificate ≥ d_min) or `soft` (certificate ≥ d_min − α, α ≥ 0 costs κα). "
         "See [concepts](concepts.md)."
@@ -55,14 +49,12 @@ MEANINGS: dict[str, str] = {
         "`euler` (the paper's first-order step; collision and workspace constraints on k = 2..N) or "
         "`zoh` (exact zero-order hold; constraints on k = 1..N)."
     ),
-    "seed": "Seed of the RRT planner and of the `random` built-in scenario.",
     "weights": (
         "Cost weights of every agent: Σ_k (s_k − s_g)ᵀQ(s_k − s_g) + u_kᵀRu_k, "
         "plus (s_N − s_g)ᵀQf(s_N − s_g)."
     ),
     "weights.Q": "State weight: a scalar ≥ 0 (times identity) or a symmetric PSD 2·dim × 2·dim matrix.",
     "weights.R": "Input weight: a scalar > 0 (times identity) or a symmetric PSD dim × dim matrix.",
-    "weights.Qf": "Terminal state weight: a scalar ≥ 0 (times identity) or a symmetric PSD 2·dim × 2·dim matrix.",
     "workspace": (
         "Box bound on every agent's position, a constraint of every OCP. `null`: no position bound; "
         "RRT then samples the starts' and goals' bounding box padded by 1 m."
@@ -70,17 +62,11 @@ MEANINGS: dict[str, str] = {
     "workspace.lower": "Lower corner, `dim` values, below `upper` on every axis. Starts and goals must lie inside.",
     "workspace.upper": "Upper corner, `dim` values.",
     "limits": "Optional actuator and speed limits, imposed in every OCP; `null` leaves a limit off.",
-    "obstacles": (
-        "Static convex obstacles. Each entry has exactly one of `box` or `polytope`; an agent's position "
-        "(its centre, not its Δ box) keeps d_min from it. Starts and goals must lie outside."
-    ),
     "obstacles[].box": "An axis-aligned box obstacle.",
     "obstacles[].box.center": "Centre of the box, `dim` values.",
     "obstacles[].box.half_size": "Half-size of the box per axis, `dim` values, each > 0.",
     "obstacles[].polytope": "A convex polytope obstacle {p : G p ≤ g}.",
-    "obstacles[].polytope.G": "Facet normals, one row of `dim` values per facet; no zero row.",
     "obstacles[].polytope.g": "Facet offsets, one per row of G.",
-    "agents": "The agents (at least one). Starts (and goals) must be pairwise outside each other's Δ box.",
     "agents[].start": "Start: a position (`dim` values, at rest) or a full state [position, velocity] (2·dim values).",
     "agents[].goal": "Goal: a position (`dim` values, at rest) or a full state [position, velocity] (2·dim values).",
     "solver": "How each MPC step is solved.",
@@ -94,7 +80,6 @@ MEANINGS: dict[str, str] = {
         "with obstacles and straight without). With `rrt`/`auto` a blocked agent also tracks an RRT waypoint."
     ),
     "stop": "When the closed loop ends.",
-    "stop.max_steps": "MPC steps at most; the run stops earlier when every agent is at its goal.",
 }
 
 # A small valid scenario shown at the top of the reference (validated when the page is built).
@@ -121,8 +106,9 @@ Checks beyond the single fields (the first failing one is reported, naming the f
   `agents[].start` / `goal` must have `dim` or 2·`dim` entries.
 - `collision: hard` needs `d_min > 0`.
 - `weights.*` matrices must be square of the right size, symmetric and positive semidefinite.
-- No two starts (nor two goals) closer than Δ on every axis; starts and goals inside the workspace
-  and outside every obstacle.
+- No two starts (nor two goals) whose bodies overlap (closer than b_i + b_j on every axis, Δ with
+  the default bodies); starts and goals inside the workspace and outside every obstacle grown by
+  the agent's body.
 - Numbers must be finite; unknown keys are an error.
 """
 
