@@ -609,8 +609,10 @@ def bench(
                 log=lambda line: typer.echo(line, err=True), first_seed=first_seed, save_runs=save_runs,
                 plane_margin=plane_margin,
             )
+    except typer.Exit:  # a RuntimeError too: the command's own one-line refusal
+        raise
     except RuntimeError as err:  # some cases failed; the report holds the others
-        fail(str(err).splitlines()[0])
+        fail(str(err).splitlines()[0] if str(err) else type(err).__name__)
     except ValueError as err:
         fail(f"--{str(err).splitlines()[0]}")
     typer.echo(str(markdown))
