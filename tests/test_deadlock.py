@@ -320,9 +320,7 @@ def _corridor_swap(max_steps: int):
                  max_steps)
 
 
-def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_path, monkeypatch):
-    import swarmpc.simulation.loop as loop
-
+def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_path):
     scn = _corridor_swap(300)
     summary, arrays = load_folder(write_run(simulate(scn), tmp_path / "lift"))
     states = arrays["states"]
@@ -331,15 +329,12 @@ def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_p
     assert collisions == 0 and ratio >= 1.0
     assert states[:, :, 2].max() > 0.4 + 0.3  # one of them went over the other
     # the right-hand rule alone turns both in the corridor's plane, and they never pass
-    monkeypatch.setattr(loop, "DeadlockResolver", lambda *args, **kwargs: DeadlockResolver(
-        *args, policy=DeadlockPolicy(untie_knots=False), **kwargs))
-    summary = load_folder(write_run(simulate(scn), tmp_path / "turn"))[0]
+    turning = scn.with_updates(**{"deadlock.untie_knots": False})
+    summary = load_folder(write_run(simulate(turning), tmp_path / "turn"))[0]
     assert not summary["all_reached"] and summary["deadlocks"] >= 10
 
 
-def test_a_swap_under_a_low_ceiling_is_untied_by_a_side_step(tmp_path, monkeypatch):
-    import swarmpc.simulation.loop as loop
-
+def test_a_swap_under_a_low_ceiling_is_untied_by_a_side_step(tmp_path):
     # 0.4 m between floor and ceiling: no room to pass over or under, only beside
     scn = _swap("low-ceiling-swap", [-1.0, -1.0, 0.2], [1.0, 1.0, 0.6], [-0.2, 0.0, 0.4], [0.2, 0.0, 0.4], 300)
     summary, arrays = load_folder(write_run(simulate(scn), tmp_path / "side"))
@@ -349,7 +344,6 @@ def test_a_swap_under_a_low_ceiling_is_untied_by_a_side_step(tmp_path, monkeypat
     assert collisions == 0 and ratio >= 1.0
     assert np.abs(states[:, :, 1]).max() > 0.3  # one of them went round the other in the layer
     # lifting only: the 0.2 m to the ceiling is not enough to pass, and the swap is never made
-    monkeypatch.setattr(loop, "DeadlockResolver", lambda *args, **kwargs: DeadlockResolver(
-        *args, policy=DeadlockPolicy(side_steps=False), **kwargs))
-    summary = load_folder(write_run(simulate(scn), tmp_path / "lift"))[0]
+    lifting = scn.with_updates(**{"deadlock.side_steps": False})
+    summary = load_folder(write_run(simulate(lifting), tmp_path / "lift"))[0]
     assert not summary["all_reached"] and summary["deadlocks"] >= 4

@@ -505,6 +505,120 @@ class PlantConfig(_Frozen):
         return self
 
 
+class DeadlockConfig(_Frozen):
+    """The deadlock and detour rules (:mod:`swarmpc.simulation.deadlock`).
+
+    An agent that stays slow, far from its goal and blocked (another agent ahead, in the corridor
+    to its goal) for ``patience`` steps steers for ``hold`` steps to a detour point ``angle_deg``
+    to the right of its goal direction; every blocked agent turns the same way, so a jam unwinds
+    like a roundabout. Agents near a free goal are spared, repeated detours are de-synchronised
+    (seeded by the scenario's ``seed``), and in 3D a knot of agents sitting on each other's goals
+    is untied by lifting (or side-stepping) one member. The keys and defaults are those of
+    :class:`swarmpc.simulation.deadlock.DeadlockPolicy`, which is built from this section.
+    """
+
+    enabled: bool = Field(
+        default=True,
+        description="`false` switches the rules off: no detours and no lifts, every agent steers to its own "
+        "goal throughout (a symmetric swap may then stay jammed until `stop.max_steps`).",
+    )
+    speed_threshold: float = Field(
+        default=0.05, gt=0, description="An agent slower than this [m/s] (and far from its goal) counts as stalled."
+    )
+    distance_threshold: float = Field(
+        default=0.2, gt=0, description="Only an agent farther than this [m] from its goal can stall."
+    )
+    patience: int = Field(
+        default=4, ge=1, le=MAX_STEPS,
+        description="Consecutive stalled steps, with another agent in its way, before an agent is detoured.",
+    )
+    neighbour_radius: float = Field(
+        default=1.0, gt=0,
+        description="Only another agent within this [m] (inf-norm), ahead and in the corridor to the goal, "
+        "blocks an agent.",
+    )
+    hold: int = Field(
+        default=15, ge=1, le=MAX_STEPS,
+        description="Steps a detour lasts: the agent steers to the detour point instead of its goal.",
+    )
+    detour: float = Field(
+        default=1.0, gt=0,
+        description="How far [m] the detour point lies from the agent (scaled by the distance to the goal "
+        "when that is below 1 m).",
+    )
+    angle_deg: float = Field(
+        default=75.0, gt=0, le=180,
+        description="Angle [degrees] of the detour direction to the right (clockwise about z) of the goal "
+        "direction.",
+    )
+    approach_radius: float = Field(
+        default=1.0, gt=0,
+        description="Within this [m] of its goal an agent still closing in by `min_progress` per step is "
+        "approaching, not stalled, and one near a free goal is spared (`spare_free_goals`); beyond it an "
+        "agent stalled with nobody in its way is detoured after `lonely_patience` steps.",
+    )
+    lonely_patience: int = Field(
+        default=12, ge=1, le=MAX_STEPS,
+        description="Consecutive stalled steps before an agent with nobody in its way (stuck at an obstacle) "
+        "is detoured.",
+    )
+    min_progress: float = Field(
+        default=0.002, gt=0,
+        description="Progress [m per step] towards the goal that makes an agent within `approach_radius` "
+        "count as approaching.",
+    )
+    escalate_after: int = Field(
+        default=2, ge=0, le=MAX_STEPS,
+        description="Detours of one agent after which its further detours are de-synchronised: angle "
+        "jittered, hold stretched (drawn from `seed`), so a recurring jam comes apart.",
+    )
+    jitter_deg: float = Field(
+        default=30.0, ge=0, le=180, description="Largest jitter [degrees] of an escalated detour's angle."
+    )
+    stretch: float = Field(
+        default=2.0, ge=0,
+        description="An escalated detour's hold is stretched by a random factor in [1, 1 + stretch].",
+    )
+    corridor_margin: float = Field(
+        default=0.1, ge=0,
+        description="Added to the clearance (Δ + d_min) [m] when testing whether another agent is in an "
+        "agent's corridor to its goal, or sits on its goal (knots).",
+    )
+    progress_window: int | None = Field(
+        default=None, ge=1, le=MAX_STEPS,
+        description="Steps over which a blocked agent must get `window_progress` closer to its goal, however "
+        "fast it moves, or count as stalled; `null`: only slow agents stall.",
+    )
+    window_progress: float = Field(
+        default=0.05, gt=0, description="Progress [m] expected over `progress_window` steps."
+    )
+    spare_free_goals: bool = Field(
+        default=True,
+        description="Never detour an agent within `approach_radius` of a goal no other agent occupies "
+        "(until `free_goal_patience` steps at rest).",
+    )
+    free_goal_patience: int | None = Field(
+        default=100, ge=0, le=MAX_STEPS,
+        description="Steps an agent at rest short of a free goal, with another agent in its corridor, is "
+        "spared; then it counts as stalled like any other. `null`: spared for ever (a head-on pair short of "
+        "free goals may then wait for ever).",
+    )
+    untie_knots: bool = Field(
+        default=True,
+        description="In 3D: untie a cycle of agents each sitting on the next one's goal by "
+        "lifting one member out of the layer while the others wait, instead of turning them all right.",
+    )
+    lift: float = Field(default=0.5, gt=0, description="How far [m] the lifted member of a knot climbs or descends.")
+    lift_hold: int = Field(
+        default=40, ge=1, le=MAX_STEPS, description="Steps a lift lasts, and the other members of the knot wait."
+    )
+    side_steps: bool = Field(
+        default=True,
+        description="When the way over or under a knot runs into a parked agent, the lifted member steps out "
+        "sideways instead (the side that keeps farthest from the others).",
+    )
+
+
 class Scenario(_Frozen):
     """A complete, validated multi-agent scenario (design.md section 8)."""
 
@@ -552,6 +666,11 @@ class Scenario(_Frozen):
     plant: PlantConfig = Field(
         default=PlantConfig(),
         description="what the inputs drive: the ideal double integrator (default) or a MuJoCo physics model",
+    )
+    deadlock: DeadlockConfig = Field(
+        default=DeadlockConfig(),
+        description="the deadlock and detour rules: when a stalled agent is detoured, how, and knots untied "
+        "in 3D; `enabled: false` switches them off",
     )
 
     @field_validator("name")

@@ -19,7 +19,7 @@ import numpy as np
 
 from swarmpc.config import Scenario, load_scenario
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.simulation.deadlock import DeadlockResolver
+from swarmpc.simulation.deadlock import DeadlockPolicy, DeadlockResolver
 from swarmpc.simulation.disturbance import planner_bodies, planner_delta
 from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.simulation.results import StepRecord
@@ -58,10 +58,11 @@ def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None 
 def deadlock_resolver(
     scn: Scenario, factory: Callable[..., DeadlockResolver] = DeadlockResolver
 ) -> DeadlockResolver:
-    """The scenario's deadlock resolver: agents kept the planner's clearance apart, detours kept
-    inside the workspace, jitter seeded by the scenario."""
+    """The scenario's deadlock resolver: the rules of its ``deadlock`` section, agents kept the
+    planner's clearance apart, detours kept inside the workspace, jitter seeded by the scenario."""
     return factory(
-        scn.num_agents, scn.dim, seed=scn.seed, clearance=planner_delta(scn) + scn.d_min, bounds=scn.bounds()
+        scn.num_agents, scn.dim, policy=DeadlockPolicy.from_config(scn.deadlock), seed=scn.seed,
+        clearance=planner_delta(scn) + scn.d_min, bounds=scn.bounds(),
     )
 
 

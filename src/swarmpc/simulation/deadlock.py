@@ -10,33 +10,29 @@ every blocked agent turns the same way, so a jam unwinds like a roundabout) for 
 point of the segment from the agent to its goal is, on every axis, closer to the other agent than
 the clearance (delta + d_min) plus ``corridor_margin``. A neighbour merely nearby is not a jam: in a
 dense swarm every agent has parked neighbours within a metre, and an agent that overshot a free
-goal at the paper's weights (it passes it at ~0.1 m/s, then brakes at a few cm/s²) was detoured
-again and again, circling its goal until the step cap (random 3D, M = 32: one agent in each of
-seeds 1 and 3, 11 and 9 detours; docs/reliability.md).
+goal and brakes slowly past it would otherwise be detoured again and again, circling its goal.
 
 An agent within ``approach_radius`` of its goal that still gets closer by ``min_progress`` per
-step is approaching, not jammed, however slowly: with the paper's weights the last metre to the
-goal is crawled at a few cm/s, and detouring such an agent (circle-16: the last agents squeezing
-into their slots between parked neighbours) only pushes it away again.
+step is approaching, not jammed, however slowly: with weak stage weights the last metre is crawled
+at a few cm/s, often between parked neighbours, and a detour there only pushes the agent away
+from its slot again.
 
 An agent stuck alone, more than ``approach_radius`` from its goal (against the corner of a
 static obstacle, where the straight line and the OBCA certificate form a local minimum), is
 detoured the same way after ``lonely_patience`` steps, without a neighbour in sight.
 
-Large symmetric swaps (circle, M = 16) can fall into a cycle: the same groups of agents detour
-together, come back together and jam again. Once an agent has detoured ``escalate_after`` times,
-its further detours are escalated and de-synchronised: the angle is jittered by up to ``jitter_deg`` and the
-hold stretched by a random factor in [1, 1 + ``stretch``], drawn from a generator seeded by the
-scenario seed, so the agents of a jam return at different times and pass one by one. Runs whose
-agents detour fewer times draw nothing and are unchanged.
+Large symmetric swaps can fall into a cycle: the same groups of agents detour together, come back
+together and jam again. Once an agent has detoured ``escalate_after`` times, its further detours
+are de-synchronised: the angle is jittered by up to ``jitter_deg`` and the hold stretched by a
+random factor in [1, 1 + ``stretch``], drawn from a generator seeded by the scenario seed, so the
+agents of a jam return at different times and pass one by one. Runs whose agents detour fewer
+times draw nothing and are unchanged.
 
 An agent within ``approach_radius`` of a goal that no other agent occupies (every other agent at
 least the clearance away from it) is not detoured: the MPC brings it in, and a detour there only
-sends it round its goal (random 3D, M = 64: agents orbiting a free goal 0.2-0.4 m out for
-hundreds of steps, detoured again each time they slowed down next to a parked neighbour). Only
-an agent held at rest there by another in its corridor for ``free_goal_patience`` steps is
-detoured after all: two agents short of their free goals, each in the other's way, never move on
-their own.
+sends it round its goal, again each time it slows down next to a parked neighbour. Only an agent
+held at rest there by another in its corridor for ``free_goal_patience`` steps is detoured after
+all: two agents short of their free goals, each in the other's way, never move on their own.
 
 What is left near the goals are knots: two or three agents each sitting on the next one's goal,
 sliding to and fro together. Turning them all right only moves the knot round in its layer. In 3D,
@@ -46,20 +42,35 @@ climbs (or descends, whichever side has more room) by ``lift`` and heads over it
 ``lift_hold`` steps, while the others keep their goals and wait; the layer clears and each slides
 into its slot. Where that way runs into agents parked just over and under the knot (or the
 ceiling is too close), the member steps out sideways instead, across the line to its goal, on
-the side that keeps farthest from the others (random 3D, M = 64, seed 4: a pair swapping in a
-layer between parked agents, lifted in turn to the step cap; side by side, they pass).
+the side that keeps farthest from the others: a pair swapping in a layer between parked agents
+cannot pass over or under each other, only side by side.
+
+Every threshold is a field of :class:`DeadlockPolicy`, set from a scenario's ``deadlock:`` section
+(:class:`swarmpc.config.DeadlockConfig`, which documents each key; ``enabled: false`` switches
+the rules off). Why each rule exists and what it changed, with the runs that showed it:
+docs/reliability.md §2 and the lab record, docs/lab/admm.md.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from swarmpc.config import DeadlockConfig
 
 
 @dataclass(frozen=True)
 class DeadlockPolicy:
-    """Thresholds of the detector and shape of the detour (m, m/s, steps, degrees)."""
+    """Thresholds of the detector and shape of the detour (m, m/s, steps, degrees).
+
+    The fields are the keys of a scenario's ``deadlock:`` section, with the same names and
+    defaults; :class:`swarmpc.config.DeadlockConfig` describes each and bounds its values. A
+    scenario's policy is :meth:`from_config` of that section; built directly, the dataclass takes
+    the same fields unchecked.
+    """
 
     speed_threshold: float = 0.05
     distance_threshold: float = 0.2
@@ -84,10 +95,9 @@ class DeadlockPolicy:
     ``free_goal_patience`` steps at rest)."""
     free_goal_patience: int | None = 100
     """Steps an agent at rest short of a free goal, with another agent in its corridor, is spared;
-    then it counts as stalled like any other (None: spared for ever). A head-on pair short of
-    their free goals, each in the other's way, otherwise waits for ever (spread 3D, M = 128,
-    seed 0: two agents 0.85 m short, at rest for 1200 steps); agents that got going again on
-    their own were spared at most 69 steps in a row in the saved runs (random 3D, M = 64)."""
+    then it counts as stalled like any other (None: spared for ever). Without a limit, a head-on
+    pair short of their free goals, each in the other's corridor, waits for ever; agents that get
+    going again on their own are spared far fewer steps than this in a row."""
     untie_knots: bool = True
     """In 3D, resolve a cycle of agents not at their goals, each sitting on the next one's goal, by
     lifting one of them out of the layer (the others wait) instead of turning them all right."""
@@ -98,6 +108,13 @@ class DeadlockPolicy:
     side_steps: bool = True
     """When the vertical way out of a knot runs into a parked neighbour, step out sideways instead
     (the axis and side that keep farthest from the others)."""
+    enabled: bool = True
+    """False: no agent is ever detoured or lifted; every step's goals are the true ones."""
+
+    @classmethod
+    def from_config(cls, config: DeadlockConfig) -> DeadlockPolicy:
+        """The policy of a scenario's ``deadlock:`` section, field by field (the names are shared)."""
+        return cls(**config.model_dump())
 
 
 def right_turn(direction: np.ndarray, angle: float) -> np.ndarray:
@@ -177,7 +194,7 @@ class DeadlockResolver:
         members need not be slow: a pair swapping places often slides to and fro together.
 
         Turning every member right moves the whole knot round in the layer it sits in, and near the
-        floor or the ceiling of a dense swarm it rarely comes apart (random 3D, M = 64).
+        floor or the ceiling of a dense swarm, with neighbours parked around it, it rarely comes apart.
         """
         if not self.policy.untie_knots or self.dim != 3 or self.bounds is None:
             return []
@@ -254,8 +271,11 @@ class DeadlockResolver:
         self.events.append((step, lifter))
 
     def goals(self, step: int, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
-        """Goals for this step: the true ones, or a detour for agents found deadlocked."""
+        """Goals for this step: the true ones, or a detour for agents found deadlocked (always the
+        true ones when the policy is not ``enabled``)."""
         p, d = self.policy, self.dim
+        if not p.enabled:
+            return goals.copy()
         positions, speeds = states[:, :d], np.linalg.norm(states[:, d:], axis=1)
         to_goal = goals[:, :d] - positions
         distance = np.linalg.norm(to_goal, axis=1)
