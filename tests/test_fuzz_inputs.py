@@ -115,12 +115,13 @@ OPTIONS = {p.opts[0]: p for p in RUN.params
 FIELD_OF = {"--seed": ("seed",), "--agents": ("agents",), "--dim": ("dim",), "--delta": ("delta", "agents"),
             "--rho": ("solver.rho",), "--admm-tol": ("solver.tol",), "--admm-max-iter": ("solver.max_iter",),
             "--max-steps": ("stop.max_steps",), "--method": ("solver.method",), "--collision": ("collision",),
-            "--initial-guess": ("solver.initial_guess",), "--plane-margin": ("solver.plane_margin",)}
+            "--initial-guess": ("solver.initial_guess",), "--plane-margin": ("solver.plane_margin",),
+            "--deadline": ("solver.deadline",), "--local": ("solver.local",), "--plant": ("plant",)}
 # valid ranges, for the options whose range the oracle knows
 IN_RANGE = {"--seed": lambda v: 0 <= v <= MAX_SEED, "--agents": lambda v: v >= 1, "--dim": lambda v: v in (2, 3),
             "--admm-max-iter": lambda v: v >= 1, "--max-steps": lambda v: v >= 1,
             "--delta": lambda v: v > 0, "--rho": lambda v: v > 0, "--admm-tol": lambda v: v > 0,
-            "--plane-margin": lambda v: v >= 0}
+            "--plane-margin": lambda v: v >= 0, "--deadline": lambda v: v > 0}
 # added when not fuzzed (and taken by the scenario), so that valid command lines finish in well under a second
 FAST = {"--max-steps": "1", "--agents": "2", "--admm-max-iter": "10"}
 # options that shape a built-in's generator: an error with a built-in whose generator does not take them

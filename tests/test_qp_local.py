@@ -69,11 +69,13 @@ def crossing_problem(dim: int) -> tuple[OCPSettings, dict, dict, list[np.ndarray
     return s, params_for(s, start, goal, copies), guess, copies
 
 
-def exact_clearances(s: OCPSettings, X: np.ndarray, copies: list[np.ndarray]) -> np.ndarray:
-    """Euclidean distances of the constrained positions to every copy's delta box and to every
-    (box) obstacle, from plain geometry."""
+def exact_clearances(s: OCPSettings, X: np.ndarray, copies: list[np.ndarray], deltas: list[float] | None = None,
+                     ) -> np.ndarray:
+    """Euclidean distances of the constrained positions to every copy's delta box (half-size
+    ``deltas[c]``, default 0.3) and to every (box) obstacle, from plain geometry."""
     own = X[: s.dim, s.first_constrained_step:]
-    gaps = [box_signed_distance(own - c, np.full((s.dim, 1), 0.3), axis=0) for c in copies]
+    deltas = deltas or [0.3] * len(copies)
+    gaps = [box_signed_distance(own - c, np.full((s.dim, 1), h), axis=0) for c, h in zip(copies, deltas)]
     for G, g in s.obstacles:
         centre, half = 0.5 * (g[: s.dim] - g[s.dim:]), 0.5 * (g[: s.dim] + g[s.dim:])
         gaps.append(box_signed_distance(own - centre[:, None], half[:, None], axis=0))
@@ -101,6 +103,26 @@ def test_plan_meets_dynamics_limits_and_separation(dim, pinned):
     clearance = exact_clearances(s, X, held)
     assert clearance.min() >= s.d_min
     assert clearance.min() <= s.d_min + 1e-3  # the separation binds: the check is not vacuous
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_each_copy_keeps_its_own_pair_delta(dim):
+    """``delta`` (d, n): one Delta_ij per copy (the two bodies' sum). The head-on neighbour's
+    larger box binds the plan at d_min from that box; a (d, 1) column is every copy's Delta."""
+    s, params, guess, copies = crossing_problem(dim)
+    ladder = QPLocalLadder(s)
+    wide = ladder.solve({**params, "delta": np.column_stack([np.full(dim, 0.4), np.full(dim, 0.3)])}, guess,
+                        copies=2)
+    assert wide.success, wide.status
+    held = [wide.x[f"C{c}"] for c in range(2)]
+    clearance = exact_clearances(s, wide.x["X"], held, [0.4, 0.3])
+    assert clearance.min() >= s.d_min
+    assert clearance[0].min() <= s.d_min + 1e-3  # the wider pair binds
+    narrow = ladder.solve(params, guess, copies=2)
+    as_column = ladder.solve({**params, "delta": np.full((dim, 1), 0.3)}, guess, copies=2)
+    np.testing.assert_allclose(as_column.x["X"], narrow.x["X"], atol=1e-9)
+    narrow_held = [narrow.x[f"C{c}"] for c in range(2)]
+    assert exact_clearances(s, narrow.x["X"], narrow_held, [0.4, 0.3])[0].min() < s.d_min  # 0.4 mattered
 
 
 def test_soft_pairs_keep_dynamics_and_price_the_shortfall():

@@ -121,6 +121,12 @@ class CaseOutcome:
     """Latest of the agents' lone-agent times to goal (ADMM runs that reached every goal only)."""
     interaction_ratio: float | None = None
     """``makespan_s`` over ``lone_makespan_s``: 1 when the agents did not slow each other down."""
+    critical_path_ms: list[float] | None = None
+    """Per step, the compute on its critical path [ms] (``steps.npz`` ``critical_path_s``: what the
+    step would take with one core per agent); None in a report written before it was recorded."""
+    deadline_misses: int | None = None
+    """Steps whose critical path exceeded the run's budget (``summary.json`` ``deadline_misses``:
+    ``solver.deadline``, else dt); None in a report written before it was recorded."""
 
 
 
@@ -160,6 +166,8 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         cost=float(summary["cost"]),
         step_ms=[1000.0 * r.wall_time for r in records],
         agent_step_ms=[1000.0 * t for r in records for t in r.agent_times],
+        critical_path_ms=[1000.0 * r.critical_path_s for r in records],
+        deadline_misses=int(summary["deadline_misses"]),
         iterations=[int(r.admm_iterations) for r in records if r.admm_iterations is not None],
         solver_failures=int(summary["solver_failures"]),
         wall_time_s=wall,
@@ -243,6 +251,8 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
         reached_times = [o.time_to_goal_s for o in admm if o.time_to_goal_s is not None]
         makespans = [o.makespan_s for o in admm if o.makespan_s is not None]
         ratios = [o.interaction_ratio for o in admm if o.interaction_ratio is not None]
+        critical = [t for o in admm for t in o.critical_path_ms or ()]
+        misses = [o.deadline_misses for o in admm if o.deadline_misses is not None]
         rows.append({
             "family": family, "agents": m, "runs": len(admm),
             "all_reached_rate": float(np.mean([o.all_reached for o in admm])) if admm else None,
@@ -254,7 +264,11 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
             "overshoot_m_max": max((o.overshoot_max_m for o in admm if o.overshoot_max_m is not None), default=None),
             "interaction_ratio_median": _percentile(ratios, 50),
             "step_ms_median": _percentile(steps, 50), "step_ms_p95": _percentile(steps, 95),
+            "critical_path_ms_median": _percentile(critical, 50), "critical_path_ms_p99": _percentile(critical, 99),
+            "deadline_misses": sum(misses) if misses else None,
             "agent_ms_median": _percentile(agent, 50), "agent_ms_p95": _percentile(agent, 95),
+            "agent_ms_p99": _percentile(agent, 99),
+            "wall_s_per_run_median": _percentile([o.wall_time_s for o in admm], 50),
             "iterations_mean": float(np.mean(iterations)) if iterations else None,
             "iterations_max": max(iterations, default=None),
             "solver_failures": sum(o.solver_failures for o in admm),
@@ -346,7 +360,8 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The benchmark table (one line per family and swarm size)."""
     header = ("| family | M | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
               "| makespan s | overshoot max m | makespan vs lone "
-              "| step ms median | p95 | per-agent ms median | p95 | ADMM it. mean | max | failures "
+              "| step ms median | p95 | critical path ms median | p99 | deadline misses "
+              "| per-agent ms median | p95 | p99 | wall s per run | ADMM it. mean | max | failures "
               "| cost vs central | central step ms | copies per agent | planes per agent |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
@@ -358,7 +373,10 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
             _cell(r["time_to_goal_s_median"]), _cell(r.get("makespan_s_median")),
             _cell(r.get("overshoot_m_max"), "{:.2f}"), _cell(r.get("interaction_ratio_median"), "{:.2f}"),
             _cell(r["step_ms_median"]), _cell(r["step_ms_p95"]),
-            _cell(r["agent_ms_median"]), _cell(r["agent_ms_p95"]), _cell(r["iterations_mean"]),
+            _cell(r.get("critical_path_ms_median")), _cell(r.get("critical_path_ms_p99")),
+            _cell(r.get("deadline_misses")),
+            _cell(r["agent_ms_median"]), _cell(r["agent_ms_p95"]), _cell(r.get("agent_ms_p99")),
+            _cell(r.get("wall_s_per_run_median")), _cell(r["iterations_mean"]),
             _cell(r["iterations_max"]), str(r["solver_failures"]),
             _cell(r["cost_gap_pct_median"], "{:+.1f}%"), _cell(r["central_step_ms_median"]),
             _cell(r.get("copies_mean"), "{:.2f}"), _cell(r.get("planes_mean"), "{:.2f}"),
@@ -462,7 +480,8 @@ def write_report(
                       + markdown_table(rows) + fits)
     data = {"machine": machine, "elapsed_s": elapsed_s, "planned_runs": planned, "rows": rows, "growth": growth,
             "runs": [{**asdict(o), "step_ms_median": _percentile(o.step_ms, 50),
-                      "agent_ms_median": _percentile(o.agent_step_ms, 50)} for o in outcomes]}
+                      "agent_ms_median": _percentile(o.agent_step_ms, 50),
+                      "critical_path_ms_median": _percentile(o.critical_path_ms or [], 50)} for o in outcomes]}
     _write_atomically(json_path, json.dumps(data, indent=2))
     return markdown, json_path
 
@@ -504,6 +523,8 @@ _OUTCOME_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyT
     "overshoot_max_m": (_is_finite_or_none, "a number or null"),
     "lone_makespan_s": (_is_finite_or_none, "a number or null"),
     "interaction_ratio": (_is_finite_or_none, "a number or null"),
+    "critical_path_ms": (lambda v: v is None or _is_finite_list(v), "a list of finite numbers or null"),
+    "deadline_misses": (lambda v: v is None or _is_count(v), "a count or null"),
 })  # fmt: skip
 """What each field of a ``bench.json`` run must hold (what :func:`write_report` writes)."""
 

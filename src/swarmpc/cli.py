@@ -60,6 +60,11 @@ class PlantName(str, Enum):
     mujoco = "mujoco"
 
 
+class LocalSolver(str, Enum):
+    qp = "qp"
+    ipopt = "ipopt"
+
+
 
 
 class Interrupted(Exception):
@@ -117,6 +122,12 @@ def run(
     admm_max_iter: Annotated[int | None, typer.Option(help="ADMM iteration cap per step")] = None,
     plane_margin: Annotated[float | None, typer.Option(
         help="keep near, not engaged pairs apart by separating planes instead of copies [m]")] = None,
+    local: Annotated[LocalSolver | None, typer.Option(
+        help="ADMM agents' local step: ipopt (the NLP) or qp (convex QPs, IPOPT as fallback) "
+        "(default: the scenario's, ipopt)")] = None,
+    deadline: Annotated[float | None, typer.Option(
+        help="ADMM critical-path budget per MPC step, in seconds: stop iterating before an overrun and end "
+        "the step through the repair pass (default: the scenario's solver.deadline, none)")] = None,
     initial_guess: Annotated[Guess | None, typer.Option(help="initial-guess strategy")] = None,
     max_steps: Annotated[int | None, typer.Option(help="MPC steps at most")] = None,
     plant: Annotated[PlantName | None, typer.Option(
@@ -154,6 +165,8 @@ def run(
                 "solver.tol": admm_tol,
                 "solver.max_iter": admm_max_iter,
                 "solver.plane_margin": plane_margin,
+                "solver.local": local.value if local else None,
+                "solver.deadline": deadline,
                 "solver.initial_guess": initial_guess.value if initial_guess else None,
                 "stop.max_steps": max_steps,
             }

@@ -398,6 +398,19 @@ class SolverConfig(_Frozen):
     seed_duals: bool = Field(
         default=True, description="seed the OBCA certificates from the guess's geometry (else 0)"
     )
+    local: Literal["qp", "ipopt"] = Field(
+        default="ipopt",
+        description="ADMM agents' local step: ipopt (the OBCA NLP by IPOPT, the reference) or qp (a short "
+        "sequence of convex QPs on OSQP with the OBCA certificates held fixed, whose plans are collision-free "
+        "as they stand; a call the QP path fails is solved by IPOPT instead)",
+    )
+    deadline: float | None = Field(
+        default=None, gt=0,
+        description="ADMM critical-path budget per MPC step [s] (what the step would take with one core per "
+        "agent): an iteration that would overrun it is not started, the step ends through the repair pass. "
+        "A deadline that binds makes the run depend on the machine's speed. null: no deadline (steps whose "
+        "critical path exceeds dt still count in summary.json deadline_misses)",
+    )
 
 
 class StopConfig(_Frozen):

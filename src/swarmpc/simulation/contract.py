@@ -165,6 +165,30 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
     ),
     KeyDoc("agent_step_time_ms.median", "number or null", "ms", "always", "Median over steps and agents."),
     KeyDoc("agent_step_time_ms.p95", "number or null", "ms", "always", "95th percentile over steps and agents."),
+    KeyDoc(
+        "critical_path_ms", "mapping", "ms", "always",
+        "Compute on one MPC step's critical path: what the step would take with one core per agent (ADMM: per "
+        "batch of local steps the slowest agent's, plus the coordinator's own work, the repair pass's "
+        "sequential re-plans in full; centralised: the whole solve). `steps.npz` `critical_path_s` per step.",
+    ),
+    KeyDoc("critical_path_ms.median", "number or null", "ms", "always", "Median over the steps; null when T = 0."),
+    KeyDoc("critical_path_ms.p95", "number or null", "ms", "always", "95th percentile over the steps."),
+    KeyDoc("critical_path_ms.p99", "number or null", "ms", "always", "99th percentile over the steps."),
+    KeyDoc("critical_path_ms.max", "number or null", "ms", "always", "Slowest step."),
+    KeyDoc(
+        "deadline_s", "number", "s", "always",
+        "The budget `deadline_misses` counts against: `solver.deadline`, or dt when the scenario sets none.",
+    ),
+    KeyDoc(
+        "deadline_misses", "integer", "–", "always",
+        "Steps whose critical path exceeded `deadline_s` (with a deadline: the first iteration or the "
+        "safety passes alone overran it; their plans are still checked and repaired).",
+    ),
+    KeyDoc(
+        "deadline_stops", "integer", "–", "always",
+        "Steps whose ADMM iterations were cut short by `solver.deadline` (0 without one; `steps.npz` "
+        "`deadline_stop`).",
+    ),
     KeyDoc("admm_iterations", "mapping or null", "–", "always", "ADMM iterations per step; null for centralised runs."),
     KeyDoc("admm_iterations.median", "number or null", "–", "admm", "Median over the steps; null when T = 0."),
     KeyDoc("admm_iterations.mean", "number or null", "–", "admm", "Mean over the steps."),
@@ -242,6 +266,15 @@ ARRAYS: tuple[ArrayDoc, ...] = (
         "Largest soft-constraint slack α of each step's plan (0 with `hard`).",
     ),
     ArrayDoc("steps.npz", "repaired", "(T,)", "bool", "–", "always", "Whether each step's ADMM plan needed the repair pass."),
+    ArrayDoc(
+        "steps.npz", "critical_path_s", "(T,)", "float64", "s", "always",
+        "Compute on each step's critical path: Σ over the step's batches of local steps (ADMM iterations, "
+        "repair re-plans) of the slowest agent's, plus the coordinator's own work; centralised: the step's solve.",
+    ),
+    ArrayDoc(
+        "steps.npz", "deadline_stop", "(T,)", "bool", "–", "always",
+        "Whether ADMM stopped iterating in each step because the next iteration would overrun `solver.deadline`.",
+    ),
     ArrayDoc(
         "admm.npz", "primal", "(T, I)", "float64", "m", "admm",
         "Primal residual per step and iteration: RMS of the plans' positions minus the consensus; NaN after "

@@ -50,7 +50,7 @@ def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None 
         adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
         coupling_margin=margin, closing_time=closing_time, reuse_tol=scn.solver.reuse_tol,
         relaxation=scn.solver.relaxation, component_stop=scn.solver.component_stop,
-        plane_margin=scn.solver.plane_margin,
+        plane_margin=scn.solver.plane_margin, deadline=scn.solver.deadline, local=scn.solver.local,
     )
     return ADMMSolver(settings, scn.num_agents, delta, config, executor)
 

@@ -3,10 +3,11 @@
 A run folder holds ``summary.json``, ``trajectory.npz`` and ``scenario.yaml`` (the contract of
 design.md section 8; ``trajectory.npz`` adds ``disturbances`` when the run injected process noise),
 ``steps.npz`` (per-step solver records: ``failures`` = failed solve calls, ``fallback`` = which
-agents applied a safe fallback plan, ``repaired`` = ADMM repair pass) and, for ADMM, ``admm.npz``
-(residual histories, ``copies``: how many neighbours each agent held per step, and ``planes``: how
-many separating planes it kept to). It is written
-under a temporary name beside the target and renamed into place when complete, so a reader never
+agents applied a safe fallback plan, ``repaired`` = ADMM repair pass, ``critical_path_s`` = the
+step's compute with one core per agent, ``deadline_stop`` = ADMM cut short by ``solver.deadline``)
+and, for ADMM, ``admm.npz`` (residual histories, ``copies``: how many neighbours each agent held
+per step, and ``planes``: how many separating planes it kept to). It is written under a
+temporary name beside the target and renamed into place when complete, so a reader never
 sees a half-written folder; a complete folder carries a marker file, and only such folders are
 ever replaced (:mod:`swarmpc.simulation.outdir`).
 """
@@ -48,6 +49,16 @@ class StepRecord:
     """(M,) neighbours' copies each agent held (ADMM), None for a centralised solve."""
     planes: np.ndarray | None = None
     """(M,) separating planes each agent kept to (ADMM), None for a centralised solve."""
+    critical_path: float | None = None
+    """Seconds of compute on the step's critical path (:attr:`PlanStep.critical_path`); None: not
+    measured, read as ``wall_time`` (see :attr:`critical_path_s`)."""
+    deadline_stop: bool = False
+    """ADMM stopped iterating for ``solver.deadline`` (:attr:`PlanStep.deadline_stop`)."""
+
+    @property
+    def critical_path_s(self) -> float:
+        """The critical path [s]; a solver that does not measure it is taken to be all on it."""
+        return self.wall_time if self.critical_path is None else self.critical_path
 
     @classmethod
     def from_plan(cls, plan: PlanStep) -> StepRecord:
@@ -64,6 +75,8 @@ class StepRecord:
             rho=tuple(plan.rho_history),
             copies=None if plan.copies is None else np.asarray(plan.copies, int),
             planes=None if plan.planes is None else np.asarray(plan.planes, int),
+            critical_path=plan.critical_path,
+            deadline_stop=plan.deadline_stop,
         )
 
 
@@ -126,6 +139,7 @@ class RunResult:
         if rrt_stats is not None:
             summary["rrt"] = rrt_stats
         summary["agent_step_time_ms"] = _agent_time_stats(records)
+        summary.update(deadline_summary(records, scenario))
         summary.update(quality_summary(states, scenario.goal_states(), scenario.dt, scenario.stop.goal_tolerance))
         return cls(
             scenario=scenario,
@@ -160,6 +174,31 @@ def _agent_time_stats(records: Sequence[StepRecord]) -> dict[str, float | None]:
         return {"median": None, "p95": None}
     times = np.concatenate([r.agent_times for r in records]) * 1000.0
     return {"median": float(np.median(times)), "p95": float(np.percentile(times, 95))}
+
+
+def deadline_budget(scenario: Scenario) -> float:
+    """The critical-path budget a step is counted against [s]: ``solver.deadline``, or the sample
+    period dt when the scenario sets none (a step slower than dt is late whether or not ADMM was
+    told to stop for it)."""
+    return scenario.dt if scenario.solver.deadline is None else scenario.solver.deadline
+
+
+def deadline_summary(records: Sequence[StepRecord], scenario: Scenario) -> dict[str, Any]:
+    """``critical_path_ms`` (median, p95, p99, max over the steps; None when there are none),
+    ``deadline_s`` (:func:`deadline_budget`), ``deadline_misses`` (steps whose critical path
+    exceeded it) and ``deadline_stops`` (steps ADMM ended early for ``solver.deadline``)."""
+    path = np.array([r.critical_path_s for r in records]) * 1000.0
+    budget = deadline_budget(scenario)
+    stats: dict[str, float | None] = dict.fromkeys(("median", "p95", "p99", "max"))
+    if path.size:
+        stats = {"median": float(np.median(path)), "p95": float(np.percentile(path, 95)),
+                 "p99": float(np.percentile(path, 99)), "max": float(path.max())}
+    return {
+        "critical_path_ms": stats,
+        "deadline_s": budget,
+        "deadline_misses": int(np.sum(path > 1000.0 * budget)),
+        "deadline_stops": int(sum(r.deadline_stop for r in records)),
+    }
 
 
 Writer = Callable[[RunResult, Path], None]
@@ -257,6 +296,8 @@ def _write_contents(result: RunResult, folder: Path) -> None:
         fallback=np.array([r.fallback for r in records], bool).reshape(len(records), m),
         max_slack=np.array([r.max_slack for r in records]),
         repaired=np.array([r.repaired for r in records], bool),
+        critical_path_s=np.array([r.critical_path_s for r in records], float),
+        deadline_stop=np.array([r.deadline_stop for r in records], bool),
     )
     if scn.solver.method == "admm":
         primal, dual, rho = result.residual_histories()

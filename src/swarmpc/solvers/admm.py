@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -37,6 +38,7 @@ from swarmpc.model.geometry import as_bodies, box_exterior_distance, box_signed_
 from swarmpc.solvers.base import PlanStep, fallback_plan
 from swarmpc.solvers.executors import Executor, SerialExecutor
 from swarmpc.solvers.guesses import agent_guess_blocks, inputs_from_states, pair_guess_blocks
+from swarmpc.solvers.qp_local import QPLocalLadder
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,12 @@ class ADMMConfig:
     """Start each ADMM iteration's local solve after the first of an MPC step from the previous
     iterate's multipliers too, not only its primal point (IPOPT warm start). Halves the
     local-solver time on random swarms at equal ADMM iterations (docs/admm.md)."""
+    local: Literal["qp", "ipopt"] = "ipopt"
+    """The agents' local step. "ipopt": the OBCA NLP by IPOPT (the reference). "qp": the convex
+    local step of :mod:`swarmpc.solvers.qp_local` (OBCA certificates held fixed per QP, OSQP, a
+    short certificate loop), whose answers are safe as they stand; any call it fails is solved by
+    IPOPT instead (:class:`QPLocalSolverLadder`, counted in ``LocalResult.local_fallbacks``).
+    Needs free copies (``dynamic_copies`` False)."""
     relaxation: float = 1.0
     """Over-relaxation alpha of the consensus (Boyd et al. sec. 3.4.3): the average and the
     multipliers use alpha * v + (1 - alpha) * z_previous in place of each block's answer v.
@@ -98,6 +106,10 @@ class ADMMConfig:
     """None: the paper's stop (primal and dual residual over every block). A margin [m]: the
     engaged stop, primal residual over engaged pairs' blocks plus mutually clear own plans
     (measured faster per step but slower to the goals in closed loop; docs/admm.md)."""
+    deadline: float | None = None
+    """Critical-path budget of one MPC step [s] (None: none): an iteration that would overrun it is
+    not started and the step ends through the repair pass (:class:`StepClock`,
+    :meth:`ADMMSolver.plan`)."""
 
 
 @dataclass(frozen=True)
@@ -161,6 +173,9 @@ class LocalResult:
     solve_time: float
     max_slack: float
     cost: float
+    local_fallbacks: int = 0
+    """Local-step calls of this request whose QP path failed and which IPOPT solved instead
+    (``ADMMConfig.local`` "qp"; always 0 with "ipopt")."""
 
 
 class LocalSolverLadder:
@@ -230,6 +245,89 @@ class LocalSolverLadder:
             cold = nlp.solve(params, guess, fixed=fixed)
             return replace(cold, solve_time=warm.solve_time + cold.solve_time)
 
+    def verified(
+        self, params: dict[str, Any], point: dict[str, np.ndarray], fixed: dict[str, Any], *, copies: int,
+        planes: int = 0,
+    ) -> NLPSolution | None:
+        """``point`` with ``fixed`` pinned as a solution (status :data:`KEPT_PLAN`, no cost, no
+        time) when it meets every bound and constraint of the problem sized for ``copies`` and
+        ``planes`` to 1e-7; None otherwise. A repair keeps a verified current plan this way."""
+        nlp = self.solver(self.slots_for(copies), planes)
+        x_vec = nlp.x_layout.pack({**point, **fixed})
+        if nlp.constraint_violation(x_vec, params) > 1e-7:
+            return None
+        return NLPSolution(
+            x=nlp.x_layout.unpack(x_vec), x_vec=x_vec, lam_x=np.zeros_like(x_vec),
+            lam_g=np.zeros_like(nlp.lbg), cost=np.nan, success=True, status=KEPT_PLAN,
+            iterations=0, solve_time=0.0,
+        )
+
+
+@dataclass(frozen=True)
+class FallbackSolution(NLPSolution):
+    """IPOPT's answer to a local step whose QP path failed (:class:`QPLocalSolverLadder`)."""
+
+    qp_status: str = ""
+    """The QP path's status of the failed call."""
+
+
+class QPLocalSolverLadder:
+    """An agent's local steps on the QP path, with IPOPT behind every call the QP path fails.
+
+    The interface of :class:`LocalSolverLadder`. Each call goes to ``qp``
+    (:class:`swarmpc.solvers.qp_local.QPLocalLadder`), whose answer is safe as it stands: its
+    collision rows hold fixed dual-feasible certificates (weak duality), tightened by its margin
+    against OSQP's tolerance, and the plan it returns is rebuilt exactly and checked. When it
+    fails (the certificates of its start ask for a separation the plan cannot reach, OSQP gives
+    up, or the check rejects the plan), the same call is solved by ``ipopt``, the reference, from
+    the same start (a solution vector unpacked into named blocks, its certificates included),
+    cold: multipliers do not carry across solvers. That answer is returned as
+    :class:`FallbackSolution`, its solution vector laid out for the QP path so that the agent's
+    next call starts the QP from it.
+    """
+
+    def __init__(self, qp: QPLocalLadder, ipopt: LocalSolverLadder) -> None:
+        self.qp = qp
+        self.ipopt = ipopt
+
+    def solve(
+        self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
+        *, copies: int, planes: int = 0, duals: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> NLPSolution:
+        """The QP path's answer if it succeeds, else IPOPT's (:class:`FallbackSolution`)."""
+        answer = self.qp.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals)
+        if answer.success:
+            return answer
+        pinned = _pins_copies(fixed)
+        start = self.qp.guess_blocks(params, guess, copies=copies, planes=planes, pinned=pinned)
+        reference = self.ipopt.solve(params, start, fixed, copies=copies, planes=planes)
+        values = {f.name: getattr(reference, f.name) for f in fields(NLPSolution)}
+        values.update(lam_x=np.zeros(0), lam_g=np.zeros(0), solve_time=answer.solve_time + reference.solve_time)
+        if reference.success:
+            values["x_vec"] = self.qp.solution_vector(reference.x, params, copies=copies, planes=planes, pinned=pinned)
+        return FallbackSolution(**values, qp_status=answer.status)
+
+    def verified(
+        self, params: dict[str, Any], point: dict[str, np.ndarray], fixed: dict[str, Any], *, copies: int,
+        planes: int = 0,
+    ) -> NLPSolution | None:
+        """:meth:`LocalSolverLadder.verified` by the reference problem, its solution vector laid
+        out for the QP path."""
+        kept = self.ipopt.verified(params, point, fixed, copies=copies, planes=planes)
+        if kept is None:
+            return None
+        vector = self.qp.solution_vector(kept.x, params, copies=copies, planes=planes, pinned=_pins_copies(fixed))
+        return replace(kept, x_vec=vector, lam_x=np.zeros(0), lam_g=np.zeros(0))
+
+
+def _pins_copies(fixed: dict[str, Any] | None) -> bool:
+    """Whether ``fixed`` pins the copies (``C{c}``: a repair pass)."""
+    return any(key.startswith("C") and key[1:].isdigit() for key in fixed or {})
+
+
+AgentLadder = LocalSolverLadder | QPLocalSolverLadder
+"""What an agent solves its local steps with (``ADMMConfig.local``)."""
+
 
 class LocalAgentFactory:
     """Picklable recipe for agents' local solvers (built where the agents live; agents made by
@@ -240,29 +338,38 @@ class LocalAgentFactory:
     (:meth:`OCPSettings.for_body`); agents whose grown obstacles are the same (every agent without
     obstacles, every agent of one body size) share one pair of ladders. None: the obstacles of
     ``settings`` as they are, for every agent.
+
+    ``local`` "qp": each ladder is a :class:`QPLocalSolverLadder` (the QP path, with these IPOPT
+    ladders as its fallback), the rescue ladder too (the QP path's soft pair form).
     """
 
     def __init__(
         self, settings: OCPSettings, slots: int, dynamic_copies: bool = True, seed_duals: bool = True,
-        warm_start: bool = False, bodies: np.ndarray | None = None,
+        warm_start: bool = False, bodies: np.ndarray | None = None, local: Literal["qp", "ipopt"] = "ipopt",
     ) -> None:
+        if local == "qp" and dynamic_copies:
+            raise ValueError("local: qp needs free copies (dynamic_copies False)")
         self.settings = settings
         self.slots = slots
         self.dynamic_copies = dynamic_copies
         self.seed_duals = seed_duals
         self.warm_start = warm_start
         self.bodies = None if bodies is None else np.asarray(bodies, float)
-        self._ladders: dict[tuple[bytes, ...], tuple[LocalSolverLadder, LocalSolverLadder | None]] = {}
+        self.local = local
+        self._ladders: dict[tuple[bytes, ...], tuple[AgentLadder, AgentLadder | None]] = {}
         self.ladder, self.rescue = self._ladders_for(settings)
 
-    def _ladders_for(self, settings: OCPSettings) -> tuple[LocalSolverLadder, LocalSolverLadder | None]:
+    def _ladders_for(self, settings: OCPSettings) -> tuple[AgentLadder, AgentLadder | None]:
         """The (ladder, rescue ladder) of problems with ``settings``' obstacles, made on first use."""
         key = tuple(np.asarray(g, float).tobytes() for _, g in settings.obstacles)
         if key not in self._ladders:
             ladder = LocalSolverLadder(settings, self.slots, self.dynamic_copies, warm_start=self.warm_start)
             rescue = (LocalSolverLadder(settings, self.slots, self.dynamic_copies, pair_collision="soft")
                       if settings.collision == "hard" else None)
-            self._ladders[key] = (ladder, rescue)
+            self._ladders[key] = (ladder, rescue) if self.local == "ipopt" else (
+                QPLocalSolverLadder(QPLocalLadder(settings), ladder),
+                None if rescue is None else QPLocalSolverLadder(QPLocalLadder(settings, pair_collision="soft"), rescue),
+            )
         return self._ladders[key]
 
     def __call__(self, agent: int) -> LocalAgent:
@@ -294,8 +401,8 @@ class LocalAgent:
     """One agent's private side of ADMM: its solver, multipliers and last solution."""
 
     def __init__(
-        self, agent: int, settings: OCPSettings, nlp: LocalSolverLadder, dynamic_copies: bool,
-        seed_duals: bool = True, rescue: LocalSolverLadder | None = None,
+        self, agent: int, settings: OCPSettings, nlp: AgentLadder, dynamic_copies: bool,
+        seed_duals: bool = True, rescue: AgentLadder | None = None,
     ) -> None:
         self.agent = agent
         self.rescue = rescue
@@ -303,6 +410,8 @@ class LocalAgent:
         self.dynamic_copies = dynamic_copies
         self.settings = settings
         self.nlp = nlp
+        self._fallbacks = 0
+        """Calls of the current request that IPOPT answered for the QP path."""
         self._gamma_own: np.ndarray | None = None
         self._gamma: dict[int, np.ndarray] = {}
         self._last: NLPSolution | None = None
@@ -316,6 +425,15 @@ class LocalAgent:
 
     def _relaxed(self, answer: np.ndarray, alpha: float, previous: np.ndarray | None) -> np.ndarray:
         return answer if alpha == 1.0 or previous is None else alpha * answer + (1.0 - alpha) * previous
+
+    def _ladder_solve(
+        self, ladder: AgentLadder, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray,
+        fixed: dict[str, Any] | None = None, **sizes: Any,
+    ) -> NLPSolution:
+        """``ladder.solve``, counting the calls IPOPT answered for a failed QP path."""
+        solution = ladder.solve(params, guess, fixed, **sizes)
+        self._fallbacks += isinstance(solution, FallbackSolution)
+        return solution
 
     def _multipliers_step(self, request: LocalRequest) -> None:
         last = self._last_sent
@@ -385,18 +503,13 @@ class LocalAgent:
         assert self._plan is not None
         n = len(request.neighbours)
         candidate = self._initial_point(replace(request, guess=self._plan[0]), always_seed=True)
-        retry = self.nlp.solve(params, candidate, fixed=pinned, copies=n, planes=request.num_planes)
+        retry = self._ladder_solve(self.nlp, params, candidate, pinned, copies=n, planes=request.num_planes)
         if retry.success:
             return retry
-        nlp = self.nlp.solver(self.nlp.slots_for(n), request.num_planes)
-        x_vec = nlp.x_layout.pack({**candidate, **pinned})
-        if nlp.constraint_violation(x_vec, params) > 1e-7:
+        kept = self.nlp.verified(params, candidate, pinned, copies=n, planes=request.num_planes)
+        if kept is None:
             return failed
-        return NLPSolution(
-            x=nlp.x_layout.unpack(x_vec), x_vec=x_vec, lam_x=np.zeros_like(x_vec),
-            lam_g=np.zeros_like(nlp.lbg), cost=retry.cost, success=True, status=KEPT_PLAN,
-            iterations=0, solve_time=failed.solve_time + retry.solve_time,
-        )
+        return replace(kept, cost=retry.cost, solve_time=failed.solve_time + retry.solve_time)
 
     def _violation(self, states: np.ndarray, request: LocalRequest) -> float:
         """How far a plan falls short of the separation d_min from the pinned neighbours' plans:
@@ -430,7 +543,7 @@ class LocalAgent:
         for slot, other in enumerate(request.neighbour_plans[0]):
             offsets = fallback[first:, : s.dim] - other[first:, : s.dim]
             point.update(pair_guess_blocks(str(slot), offsets, request.pair_deltas[slot], soft))
-        solution = self.rescue.solve(params, point, fixed=pinned, copies=len(request.neighbours),
+        solution = self._ladder_solve(self.rescue, params, point, pinned, copies=len(request.neighbours),
                                      planes=request.num_planes)
         if not solution.success:
             return None, solution.solve_time
@@ -489,8 +602,9 @@ class LocalAgent:
     def solve(self, request: LocalRequest) -> LocalResult:
         """Multiplier update for the new consensus, then the local NLP."""
         if self._unchanged_lone_problem(request) and self._last_sent is not None:
-            return replace(self._last_sent, solve_time=0.0)
+            return replace(self._last_sent, solve_time=0.0, local_fallbacks=0)
         self._last_state = request.state
+        self._fallbacks = 0
         s = self.settings
         repair = request.neighbour_plans is not None
         if not request.neighbours:
@@ -524,7 +638,7 @@ class LocalAgent:
         same_shape = request.neighbours == self._last_neighbours and self._same_planes(request)
         targets = self._consensus_targets(request, params) if n else None
         if targets is not None and self._reusable(request, targets, same_shape) and self._last_sent is not None:
-            self._last_sent = replace(self._last_sent, solve_time=0.0)
+            self._last_sent = replace(self._last_sent, solve_time=0.0, local_fallbacks=0)
             return self._last_sent
         point: dict[str, np.ndarray] | np.ndarray
         if self._last is not None and same_shape and not request.new_step:
@@ -539,11 +653,11 @@ class LocalAgent:
         if pinned is not None and s.collision == "soft":
             # repair: first try to keep clear of the fixed plans without slack
             strict = {**pinned, **{f"A{slot}": 0.0 for slot in range(len(request.neighbours))}}
-            solution = self.nlp.solve(params, point, fixed=strict, copies=n, planes=planes)
+            solution = self._ladder_solve(self.nlp, params, point, strict, copies=n, planes=planes)
             if not solution.success:
-                solution = self.nlp.solve(params, point, fixed=pinned, copies=n, planes=planes)
+                solution = self._ladder_solve(self.nlp, params, point, pinned, copies=n, planes=planes)
         else:
-            solution = self.nlp.solve(params, point, fixed=pinned, copies=n, planes=planes,
+            solution = self._ladder_solve(self.nlp, params, point, pinned, copies=n, planes=planes,
                                       duals=self._warm_duals(request, same_shape) if pinned is None else None)
         if pinned is not None and not solution.success and self._plan is not None:
             solution = self._repair_from_own_plan(request, params, pinned, solution)
@@ -590,6 +704,7 @@ class LocalAgent:
             solve_time=solution.solve_time,
             max_slack=float(max(slack)) if slack else 0.0,
             cost=solution.cost,
+            local_fallbacks=self._fallbacks,
         )
         self._last_sent = result
         self._last_neighbours = request.neighbours
@@ -790,6 +905,105 @@ class EngagedBlocks:
     copies: list[tuple[bool, ...]]
 
 
+@dataclass(frozen=True)
+class TimedResult(LocalResult):
+    """A :class:`LocalResult` that also carries the wall time of the local step that produced it."""
+
+    call_time: float = 0.0
+    """Seconds the agent spent on the request where it runs: its solver calls (``solve_time``)
+    plus its own bookkeeping around them (multipliers, parameters, the reuse test)."""
+
+
+class TimedAgent:
+    """An agent whose answers carry the wall time of its whole local step (:class:`TimedResult`).
+
+    The critical path (:class:`StepClock`) needs each agent's compute per request, measured where
+    the agent runs (a worker process under the process executor); executors pass answers through
+    unopened, so the answer carries it. Every other attribute is the wrapped agent's, read and
+    written through: code that reaches into an executor's agents meets the agent itself.
+    """
+
+    def __init__(self, agent: Any) -> None:
+        object.__setattr__(self, "_inner", agent)
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "_inner":  # not set yet (a copy or unpickling in progress): no recursion
+            raise AttributeError(name)
+        return getattr(self._inner, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._inner, name, value)
+
+    def solve(self, request: LocalRequest) -> TimedResult:
+        started = time.perf_counter()
+        result = self._inner.solve(request)
+        elapsed = time.perf_counter() - started
+        return TimedResult(**{f.name: getattr(result, f.name) for f in fields(LocalResult)}, call_time=elapsed)
+
+
+class TimedAgentFactory:
+    """Picklable: the agents ``factory`` makes, each wrapped in a :class:`TimedAgent`."""
+
+    def __init__(self, factory: Callable[[int], Any]) -> None:
+        self.factory = factory
+
+    def __call__(self, agent: int) -> TimedAgent:
+        return TimedAgent(self.factory(agent))
+
+
+class StepClock:
+    """The compute on one MPC step's critical path, and the anytime stop at the step's deadline.
+
+    The critical path is what the step would take with one core per agent and no transport
+    latency: the coordinator's own work (everything in :meth:`ADMMSolver.plan` outside the agents'
+    local steps) plus, for every batch of local steps it waits for, the slowest agent's local step
+    (:attr:`TimedResult.call_time`; ``solve_time`` for answers of executors that do not ask the
+    agents themselves). It is measured as the step's wall time less, per batch, the batch's wall
+    time beyond its slowest agent: under the serial executor the other agents' steps, under a
+    process executor the queueing and transport. The repair pass hands its agents over one at a
+    time, so its sequential re-plans add up in full.
+
+    Parameters
+    ----------
+    deadline : float or None
+        Critical-path budget of the step [s]; None: no deadline.
+    """
+
+    def __init__(self, deadline: float | None = None) -> None:
+        self.deadline = deadline
+        self.started = time.perf_counter()
+        self.stopped = False
+        """True once :meth:`next_iteration` refused an iteration for the deadline."""
+        self._overlap = 0.0
+        self._iteration_began: float | None = None
+
+    def elapsed(self) -> tuple[float, float]:
+        """(wall time, critical path) of the step so far [s], read at one instant."""
+        wall = time.perf_counter() - self.started
+        return wall, wall - self._overlap
+
+    def solve(self, executor: Executor, requests: Sequence[LocalRequest]) -> list[LocalResult]:
+        """``executor``'s answers to ``requests``; the batch counts as its slowest agent's step."""
+        began = time.perf_counter()
+        results = executor.solve(requests)
+        batch = time.perf_counter() - began
+        slowest = max((getattr(r, "call_time", r.solve_time) for r in results), default=0.0)
+        self._overlap += max(batch - slowest, 0.0)
+        return results
+
+    def next_iteration(self) -> bool:
+        """Whether to start another ADMM iteration. No (and :attr:`stopped`) when the critical path
+        so far plus the last iteration's share of it would exceed the deadline: the last iteration
+        is the estimate of the next. The first iteration always runs: without it there is no plan
+        to make safe."""
+        now = self.elapsed()[1]
+        last, self._iteration_began = self._iteration_began, now
+        if last is None or self.deadline is None or now + (now - last) <= self.deadline:
+            return True
+        self.stopped = True
+        return False
+
+
 class ADMMSolver:
     """Consensus-ADMM distributed MPC over an executor (serial by default).
 
@@ -814,13 +1028,15 @@ class ADMMSolver:
         self.config = config
         self.executor = executor or SerialExecutor()
         factory = LocalAgentFactory(settings, max(num_agents - 1, 1), config.dynamic_copies, config.seed_duals,
-                                    config.warm_start, bodies=self.bodies)
-        self.executor.start(factory, range(num_agents))
+                                    config.warm_start, bodies=self.bodies, local=config.local)
+        self.executor.start(TimedAgentFactory(factory), range(num_agents))
         self._z: np.ndarray | None = None
         self._rho = config.rho
         self._final_neighbours: list[tuple[int, ...]] | None = None
         self._planes: list[dict[int, tuple[np.ndarray, np.ndarray]]] = [{} for _ in range(num_agents)]
         """This step's separating planes: per agent, partner -> (normals (d, K), offsets (K,))."""
+        self._clock = StepClock()
+        """The current step's clock: every local step is asked through it (:meth:`_solve`)."""
 
     def close(self) -> None:
         self.executor.close()
@@ -1011,8 +1227,32 @@ class ADMMSolver:
         return checked
 
     def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep:
-        """One MPC step: ADMM iterations until consensus, then every agent's own plan."""
-        started = time.perf_counter()
+        """One MPC step: ADMM iterations until consensus, then every agent's own plan.
+
+        With ``config.deadline``, ADMM is anytime: before each iteration after the first, the
+        step's critical path so far plus the last iteration's share of it is compared with the
+        deadline (:class:`StepClock`); when it would overrun, no further iteration starts and the
+        step ends as one that ran out of iterations does, through :meth:`_make_safe` (the repair
+        pass, re-run on conflicting candidate pairs, then re-plans around stranded fallbacks;
+        always run after a deadline stop, even with ``repair`` off).
+
+        What is guaranteed: the deadline only ever removes ADMM iterations; it never shortens or
+        skips a safety pass. A plan applied after a deadline stop has passed exactly the passes of
+        a step that reached ``max_iter`` without consensus: every coupled agent re-planned, one
+        after another, against its neighbours' current plans held fixed (each coupled pair is
+        then feasible under the OBCA constraints whenever its solves succeed); an agent whose
+        solves failed keeps its current plan if it verifiably meets every constraint, else flies
+        a fallback that the agents after it respect and that its close neighbours re-plan around
+        (rescued by the least-violating soft plan as a last resort); and every candidate pair that
+        can meet within the horizon was checked for conflicts and, if it had one, coupled and
+        repaired (up to :data:`REPAIR_ROUNDS` passes). The time of these passes counts on the
+        critical path; when the total exceeds the deadline the step is a deadline miss (recorded
+        by the run), never an unchecked plan. Not guaranteed: that the critical path stays within
+        the deadline (the first iteration and the safety passes always run), nor the plan's
+        quality (fewer iterations: further from the consensus optimum). Stopping depends on
+        measured time, so a deadline that binds makes a run depend on the machine and its load.
+        """
+        clock = self._clock = StepClock(self.config.deadline)
         s, cfg, M = self.settings, self.config, self.num_agents
         first = s.first_constrained_step
         if self._z is None:
@@ -1039,12 +1279,14 @@ class ADMMSolver:
         by_component = cfg.component_stop and cfg.engage_margin is None
         iterating = np.ones(M, bool)  # agents whose component has not met the tolerance yet
         for iteration in range(cfg.max_iter):
+            if not clock.next_iteration():
+                break
             requests = [
                 self._request(i, states, goals, guess, neighbours[i], z, rho, rho_previous, iteration == 0,
                               carry=carry[i] if iteration == 0 else ())
                 for i in map(int, np.flatnonzero(iterating))
             ]
-            fresh = self.executor.solve(requests)
+            fresh = self._solve(requests)
             if len(fresh) == M:
                 results = list(fresh)
             else:  # the stopped components' answers stand
@@ -1087,42 +1329,14 @@ class ADMMSolver:
                     labels = components(neighbours)
                     iterating |= np.isin(labels, labels[[i for pair in missing for i in pair]])
             rho_previous = rho
-            if self._stalled(primal[window_start:]):
-                if cfg.stall_rho_factor is None or rho >= cfg.rho_bounds[1]:
-                    break
-                # a stalled nonconvex ADMM often settles once the penalty is stiffer
-                rho = min(rho * cfg.stall_rho_factor, cfg.rho_bounds[1])
-                window_start = len(primal)
-            if cfg.adaptive_rho:
-                if r_norm > 10 * s_norm:
-                    rho = min(rho * 2, cfg.rho_bounds[1])
-                elif s_norm > 10 * r_norm:
-                    rho = max(rho / 2, cfg.rho_bounds[0])
-        if not converged and cfg.repair:
-            for round_ in range(REPAIR_ROUNDS):
-                previous = results
-                results = self._repair(states, goals, guess, neighbours, z, rho, results)
-                # later passes count only the agents they re-solved
-                times, failed = self._new_solves(results, previous, every=round_ == 0)
-                agent_times += times
-                failures += failed
-                # the repair only re-plans against neighbours: couple any candidate pair whose
-                # repaired plans now conflict and repair again
-                missing = self._missing(results, neighbours, self._checked_pairs(candidates, states, results))
-                if not missing or round_ == REPAIR_ROUNDS - 1:
-                    break
-                neighbours = self._couple(neighbours, missing)
-        stranded = self._stranded_fallbacks(results) if cfg.repair else []
-        if stranded:
-            # fallbacks that break the separation from another plan: those agents re-plan against
-            # every plan (rescued if their hard solves fail), then their neighbours against them
-            neighbours = self._couple(neighbours, stranded)
-            previous = results
-            results = self._repair(states, goals, guess, neighbours, z, rho, results,
-                                   agents=sorted({i for i, _ in stranded}))
-            times, failed = self._new_solves(results, previous)
-            agent_times += times
-            failures += failed
+            rho, window_start, stalled = self._next_penalty(primal, window_start, rho, r_norm, s_norm)
+            if stalled:
+                break
+        repair = cfg.repair or clock.stopped  # a deadline stop is never left unrepaired
+        results, neighbours, times, failed = self._make_safe(
+            states, goals, guess, neighbours, z, rho, results, candidates, not converged and repair, repair)
+        agent_times += times
+        failures += failed
         # next step's consensus starts from the plans actually applied: after a repair pass the
         # average z of a non-converged iterate is not what any agent flies
         self._z = np.array([r.own for r in results])
@@ -1131,23 +1345,86 @@ class ADMMSolver:
         plans_x = np.array([r.states for r in results])
         plans_u = np.array([r.inputs for r in results])
         fallback = np.array([r.fallback for r in results])
+        wall, critical = clock.elapsed()
         return PlanStep(
             states=plans_x,
             inputs=plans_u,
             predicted_cost=float(sum(r.cost for r in results)),
             max_slack=float(max(r.max_slack for r in results)),
-            wall_time=time.perf_counter() - started,
+            wall_time=wall,
             agent_times=agent_times,
             failures=failures,
             fallback=fallback,
             admm_iterations=len(primal),
-            repaired=not converged and cfg.repair,
+            repaired=not converged and repair,
+            critical_path=critical,
+            deadline_stop=clock.stopped,
             primal_residuals=primal,
             dual_residuals=dual,
             rho_history=rhos,
             copies=np.array([len(n) for n in neighbours], int),
             planes=np.array([len(p) for p in self._planes], int),
         )
+
+    def _solve(self, requests: list[LocalRequest]) -> list[LocalResult]:
+        """The agents' answers to ``requests``, timed on the current step's critical path."""
+        return self._clock.solve(self.executor, requests)
+
+    def _next_penalty(
+        self, primal: list[float], window_start: int, rho: float, r_norm: float, s_norm: float,
+    ) -> tuple[float, int, bool]:
+        """(rho, start of the stall window, stop) for the next iteration: a stalled primal
+        residual (:meth:`_stalled`) stiffens rho and restarts the window, or stops the iterations
+        when rho cannot grow; ``adaptive_rho`` then balances the residuals."""
+        cfg = self.config
+        if self._stalled(primal[window_start:]):
+            if cfg.stall_rho_factor is None or rho >= cfg.rho_bounds[1]:
+                return rho, window_start, True
+            # a stalled nonconvex ADMM often settles once the penalty is stiffer
+            rho = min(rho * cfg.stall_rho_factor, cfg.rho_bounds[1])
+            window_start = len(primal)
+        if cfg.adaptive_rho:
+            if r_norm > 10 * s_norm:
+                rho = min(rho * 2, cfg.rho_bounds[1])
+            elif s_norm > 10 * r_norm:
+                rho = max(rho / 2, cfg.rho_bounds[0])
+        return rho, window_start, False
+
+    def _make_safe(
+        self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray, neighbours: list[tuple[int, ...]],
+        z: np.ndarray, rho: float, results: list[LocalResult], candidates: np.ndarray, repair_all: bool,
+        stranded_check: bool,
+    ) -> tuple[list[LocalResult], list[tuple[int, ...]], np.ndarray, int]:
+        """The safety passes after the iterations; returns the plans, the coupling, the solve time
+        per agent and the failed solves the passes added.
+
+        ``repair_all`` (ADMM stopped without consensus): the repair pass (:meth:`_repair`), and
+        again after coupling any candidate pair whose repaired plans conflict, up to
+        :data:`REPAIR_ROUNDS` passes. ``stranded_check``: fallbacks that break the separation from
+        another plan re-plan against every plan (rescued if their hard solves fail), then their
+        neighbours against them."""
+        times, failures = np.zeros(self.num_agents), 0
+        for round_ in range(REPAIR_ROUNDS if repair_all else 0):
+            previous = results
+            results = self._repair(states, goals, guess, neighbours, z, rho, results)
+            # later passes count only the agents they re-solved
+            new, failed = self._new_solves(results, previous, every=round_ == 0)
+            times, failures = times + new, failures + failed
+            # the repair only re-plans against neighbours: couple any candidate pair whose
+            # repaired plans now conflict and repair again
+            missing = self._missing(results, neighbours, self._checked_pairs(candidates, states, results))
+            if not missing or round_ == REPAIR_ROUNDS - 1:
+                break
+            neighbours = self._couple(neighbours, missing)
+        stranded = self._stranded_fallbacks(results) if stranded_check else []
+        if stranded:
+            neighbours = self._couple(neighbours, stranded)
+            previous = results
+            results = self._repair(states, goals, guess, neighbours, z, rho, results,
+                                   agents=sorted({i for i, _ in stranded}))
+            new, failed = self._new_solves(results, previous)
+            times, failures = times + new, failures + failed
+        return results, neighbours, times, failures
 
     @staticmethod
     def _new_solves(
@@ -1261,7 +1538,7 @@ class ADMMSolver:
             own_z[i] = repaired[i].states[first:, : self.settings.dim].T
             request = self._request(i, states, goals, guess, neighbours[i], own_z, rho, rho, False, plans,
                                     rescue=rescue)
-            repaired[i] = self.executor.solve([request])[0]
+            repaired[i] = self._solve([request])[0]
 
         order = list(range(self.num_agents))[::-1] if agents is None else list(agents)  # tie-break: docs/admm.md
         retried: set[int] = set()

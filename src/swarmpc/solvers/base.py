@@ -37,6 +37,12 @@ class PlanStep:
     planes: np.ndarray | None = None
     """(M,) how many separating planes each agent kept to at the end of the step (ADMM with
     ``plane_margin``; None for a centralised solve)."""
+    critical_path: float | None = None
+    """Seconds of compute on the step's critical path: what the step would take with one core per
+    agent (ADMM: per batch of local steps the slowest agent's, plus the coordinator's own work;
+    centralised: the whole solve). None: not measured, read as ``wall_time``."""
+    deadline_stop: bool = False
+    """ADMM stopped iterating because another iteration would have overrun ``solver.deadline``."""
 
 
 def input_bounds(settings: OCPSettings) -> np.ndarray:

@@ -46,7 +46,12 @@ Interface: :class:`QPLocalLadder` has the ``solve`` signature of
 named blocks, so ``LocalAgent`` can call it in its place. Its ``x_vec`` is the QP's primal
 vector followed by the certificates of the last round (as the NLP's vector carries its L blocks),
 ``lam_g`` the QP's multipliers: passed back as the next guess and ``duals`` they warm-start the
-next ADMM iteration's solve and carry its certificates over.
+next ADMM iteration's solve and carry its certificates over. The parameter ``delta`` is that of
+:func:`swarmpc.formulation.ocp.build_local`: one Delta_ij column per copy (or one (d,) value for
+all). ``solver.local: qp`` puts it in the agents' hands through
+:class:`swarmpc.solvers.admm.QPLocalSolverLadder`, which hands any call it fails to IPOPT
+(:meth:`QPLocalLadder.guess_blocks` and :meth:`QPLocalLadder.solution_vector` translate the
+starts and answers between the two layouts).
 """
 
 from __future__ import annotations
@@ -62,7 +67,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import HalfspaceIntersection
 
-from swarmpc.formulation.certificates import PolytopeCertifier, box_certificates, pair_rows
+from swarmpc.formulation.certificates import PolytopeCertifier, box_certificates
 from swarmpc.formulation.nlp import NLPSolution
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.dynamics import discrete_matrices
@@ -76,6 +81,7 @@ __all__ = [
     "QPLocalOptions",
     "LocalQPProblem",
     "SequentialLocalQP",
+    "copy_deltas",
     "speed_polytope",
 ]
 
@@ -131,6 +137,18 @@ def speed_polytope(dim: int, facets: int | None = None) -> tuple[np.ndarray, flo
     halfspaces = np.hstack([normals, -np.ones((len(normals), 1))])
     vertices = HalfspaceIntersection(halfspaces, np.zeros(dim)).intersections
     return normals, float(1.0 / np.linalg.norm(vertices, axis=1).max())
+
+
+def copy_deltas(delta: np.ndarray, copies: int, dim: int) -> np.ndarray:
+    """The local problem's ``delta`` parameter as (d, copies): column c is the Delta_ij of the
+    pair with copy c (b_i + b_j, the two bodies); a (d,) value is taken for every copy, as
+    :func:`swarmpc.formulation.ocp.build_local` takes it."""
+    array = np.asarray(delta, float)
+    if array.ndim == 1 or array.shape == (dim, 1):
+        return np.broadcast_to(array.reshape(dim, 1), (dim, copies))
+    if array.shape != (dim, copies):
+        raise ValueError(f"delta: expected ({dim},) or ({dim}, {copies}), got {array.shape}")
+    return array
 
 
 def _sphere_directions(dim: int, count: int | None) -> np.ndarray:
@@ -236,6 +254,19 @@ class Linearisation:
     obstacle_value: np.ndarray
 
 
+def _delta_groups(half: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(copy indices, their Delta (d,)) per distinct column of ``half`` (d, n): one vectorised
+    certificate call per body-size pair, a single one when every pair has the same Delta."""
+    n = half.shape[1]
+    if n == 0:
+        return []
+    if np.all(half == half[:, :1]):
+        return [(np.arange(n), half[:, 0])]
+    columns, group = np.unique(half.T, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    return [(np.flatnonzero(group == g), column) for g, column in enumerate(columns)]
+
+
 class Certifier:
     """Best certificates of an own plan against copies (delta boxes) and static obstacles, and
     the linear rows of given certificates."""
@@ -249,22 +280,30 @@ class Certifier:
         """Certificate entries per constrained step of one copy's pair rows plus all obstacles."""
 
     def __call__(self, own: np.ndarray, copies: np.ndarray, delta: np.ndarray) -> Linearisation:
-        """The best certificates for own positions (d, K) and copies (n, d, K)."""
+        """The best certificates for own positions (d, K) and copies (n, d, K); ``delta``: the
+        pairs' Delta_ij, (d, n) one column per copy or (d,) for every copy."""
         d, K = own.shape
         n = len(copies)
-        pair = box_certificates(np.transpose(own[None] - copies, (1, 0, 2)).reshape(d, n * K), delta)
-        lam = np.transpose(pair.lam.reshape(2 * d, n, K), (1, 0, 2))
+        half = copy_deltas(delta, n, d)
+        lam = np.empty((n, 2 * d, K))
+        for members, column in _delta_groups(half):
+            offsets = np.transpose(own[None] - copies[members], (1, 0, 2)).reshape(d, len(members) * K)
+            pair = box_certificates(offsets, column)
+            lam[members] = np.transpose(pair.lam.reshape(2 * d, len(members), K), (1, 0, 2))
         certs = [certifier(own) for certifier in self.obstacles]
-        return self.rows(own, copies, delta, lam, tuple(c.lam for c in certs))
+        return self.rows(own, copies, half, lam, tuple(c.lam for c in certs))
 
     def rows(self, own: np.ndarray, copies: np.ndarray, delta: np.ndarray, pair_lam: np.ndarray,
              obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
-        """The linear rows of fixed certificates, and their values at (own, copies)."""
+        """The linear rows of fixed certificates, and their values at (own, copies); ``delta`` as
+        in :meth:`__call__`. Per copy c the row is that of
+        :func:`swarmpc.formulation.certificates.pair_rows` with its own Delta:
+        n = lambda_+ - lambda_-, constant = Delta_c^T (lambda_+ + lambda_-)."""
         d, K = own.shape
         n = len(copies)
-        normal, constant = pair_rows(np.transpose(pair_lam, (1, 0, 2)).reshape(2 * d, n * K), delta)
-        normal = np.transpose(normal.reshape(d, n, K), (1, 0, 2))
-        constant = constant.reshape(n, K)
+        half = copy_deltas(delta, n, d)
+        normal = pair_lam[:, :d] - pair_lam[:, d:]
+        constant = np.einsum("dn,ndk->nk", half, pair_lam[:, :d] + pair_lam[:, d:])
         o_normal = np.array([G.T @ lam for G, lam in zip(self.G, obstacle_lam)]).reshape(-1, d, K)
         o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam)]).reshape(-1, K)
         return Linearisation(
@@ -633,6 +672,40 @@ class SequentialLocalQP:
                 x[lay.C[c]] = np.asarray(guess[f"C{c}"], float)
         return x
 
+    def vector_of(self, blocks: dict[str, np.ndarray], delta: np.ndarray) -> np.ndarray:
+        """A solution vector of this layout (primal vector, then certificates) from the named
+        blocks of another solver's answer to this shape's problem (the IPOPT fallback): plan,
+        copies (``C{c}``, present also where pinned) and slacks taken as they are, certificates
+        the best ones of its positions, so that the next QP solve starts from that answer."""
+        lay, s = self.problem.layout, self.settings
+        x = self.start_point(blocks)
+        for c, row in enumerate(lay.pair_slack):
+            x[row] = np.ravel(blocks.get(f"A{c}", 0.0))
+        for o, row in enumerate(lay.obstacle_slack):
+            x[row] = np.ravel(blocks.get(f"A_o{o}", 0.0))
+        copies = np.array([np.asarray(blocks[f"C{c}"], float) for c in range(self.shape.copies)])
+        copies = copies.reshape(self.shape.copies, s.dim, s.num_constrained)
+        return np.concatenate([x, self.certify.pack(self.certify(x[lay.own], copies, delta))])
+
+    def blocks_of(self, vector: np.ndarray, params: dict[str, Any]) -> dict[str, np.ndarray]:
+        """The named blocks of :func:`swarmpc.formulation.ocp.build_local`'s problem (X, U,
+        C{c}, L{c}, A{c}, L_o{o}, A_o{o}) of a solution vector of this layout: the start of
+        the IPOPT step when this one failed. Pinned copies are taken from ``params`` (Z{c})."""
+        lay, n = self.problem.layout, self.shape.copies
+        x = vector[: lay.size]
+        pair, obstacles = self.certify.unpack(vector[lay.size:], n)
+        blocks = {"X": x[lay.X], "U": x[lay.U]}
+        for c in range(n):
+            blocks[f"C{c}"] = np.asarray(params[f"Z{c}"], float) if self.shape.pinned else x[lay.C[c]]
+            blocks[f"L{c}"] = pair[c]
+            if len(lay.pair_slack):
+                blocks[f"A{c}"] = x[lay.pair_slack[c]][None, :]
+        for o, lam in enumerate(obstacles):
+            blocks[f"L_o{o}"] = lam
+            if len(lay.obstacle_slack):
+                blocks[f"A_o{o}"] = x[lay.obstacle_slack[o]][None, :]
+        return blocks
+
     def positions(self, x: np.ndarray, pinned: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Own constrained positions (d, K) and the copies (n, d, K) of a primal vector."""
         lay = self.problem.layout
@@ -650,7 +723,7 @@ class SequentialLocalQP:
         dynamics cannot reach, e.g. a guess that cuts through a pinned neighbour's plan), the
         loop restarts once from the certificates of each fallback plan (coasting, braking)."""
         began = time.perf_counter()
-        delta = np.asarray(params["delta"], float)
+        delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
         x, lin = self._start(guess, delta, pinned)
         tally = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
         answer, x, lin, converged = self._loop(params, x, lin, y, pinned, slack_caps, delta, tally)
@@ -747,7 +820,7 @@ class SequentialLocalQP:
         X, U = self.rebuild(np.asarray(params["x0"], float), x[lay.U])
         own = X[: s.dim, s.first_constrained_step:]
         copies = pinned if pinned is not None else x[lay.C]
-        delta = np.asarray(params["delta"], float)
+        delta = copy_deltas(params["delta"], n, s.dim)
         final = self.certify.rows(own, copies, delta, lin.pair_lam, lin.obstacle_lam)
         if self.violation(X, final, params) > 0.0:
             final = self.certify(own, copies, delta)
@@ -853,18 +926,41 @@ class QPLocalLadder:
             shape = LocalShape(copies, planes, pinned is not None, self.pair_collision)
             stepper = self.stepper(shape)
             if isinstance(guess, np.ndarray) and guess.size != stepper.vector_size:
-                guess = self._sibling_blocks(shape, guess, params)
+                guess = self._layout_of(shape, guess).blocks_of(guess, params)
             y = duals[1] if duals is not None and duals[1].size == stepper.problem.A.shape[0] else None
             return stepper.solve(params, guess, pinned, caps, y)
 
-    def _sibling_blocks(self, shape: LocalShape, vector: np.ndarray, params: dict[str, Any]) -> dict[str, np.ndarray]:
-        """Named blocks of a solution vector of the same problem with the copies free instead of
-        pinned or the other way round (a repair pass that starts from the agent's last answer)."""
+    def _layout_of(self, shape: LocalShape, vector: np.ndarray) -> SequentialLocalQP:
+        """The built step whose solution vectors ``vector`` is laid out for: ``shape``'s, or that
+        of the same problem with the copies free instead of pinned or the other way round (a
+        repair pass that starts from the agent's last answer)."""
+        stepper = self.stepper(shape)
+        if vector.size == stepper.vector_size:
+            return stepper
         sibling = self._built.get(LocalShape(shape.copies, shape.planes, not shape.pinned, shape.pair_collision))
         if sibling is None or vector.size != sibling.vector_size:
             raise ValueError("a guess vector must come from a QP local step of the same problem")
-        lay = sibling.problem.layout
-        blocks = {"X": vector[lay.X], "U": vector[lay.U]}
-        for c in range(shape.copies):
-            blocks[f"C{c}"] = np.asarray(params[f"Z{c}"], float) if sibling.shape.pinned else vector[lay.C[c]]
-        return blocks
+        return sibling
+
+    def guess_blocks(
+        self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, *, copies: int, planes: int = 0,
+        pinned: bool = False,
+    ) -> dict[str, np.ndarray]:
+        """The named blocks of a guess this ladder accepts (a solution vector of the problem, free
+        or ``pinned`` copies, is unpacked with its certificates; blocks are returned as they
+        are): the start another solver takes when this one failed."""
+        if not isinstance(guess, np.ndarray):
+            return guess
+        with self._lock:
+            stepper = self._layout_of(LocalShape(copies, planes, pinned, self.pair_collision), guess)
+            return stepper.blocks_of(guess, params)
+
+    def solution_vector(
+        self, blocks: dict[str, np.ndarray], params: dict[str, Any], *, copies: int, planes: int = 0,
+        pinned: bool = False,
+    ) -> np.ndarray:
+        """A solution vector of this ladder's problem from the named blocks of another solver's
+        answer (see :meth:`SequentialLocalQP.vector_of`), to be passed back as a later guess."""
+        with self._lock:
+            stepper = self.stepper(LocalShape(copies, planes, pinned, self.pair_collision))
+            return stepper.vector_of(blocks, params["delta"])

@@ -1,0 +1,190 @@
+"""The critical path of an MPC step and anytime ADMM with a deadline (``solver.deadline``).
+
+The critical path is what a step would take with one core per agent: per batch of local steps the
+slowest agent's, plus the coordinator's own work (:class:`swarmpc.solvers.admm.StepClock`). A
+deadline may only remove ADMM iterations: every plan is still made safe by the repair pass."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from swarmpc.bench import BenchCase, CaseOutcome, aggregate, load_outcomes, markdown_table, write_report
+from swarmpc.model.dynamics import DoubleIntegrator
+from swarmpc.model.geometry import count_body_collisions
+from swarmpc.scenarios import builtin_scenario
+from swarmpc.simulation import contract
+from swarmpc.simulation.controller import Controller
+from swarmpc.simulation.loop import simulate
+from swarmpc.simulation.results import deadline_summary, write_run
+from swarmpc.solvers import admm
+from swarmpc.solvers.admm import StepClock
+
+CROSSING_FROM = 20
+"""paper-2d's agents couple from step 23 on: from here on a step iterates."""
+
+
+@pytest.fixture(scope="module")
+def crossing():
+    """paper-2d and its states after ``CROSSING_FROM`` steps (centralised, quick): agents about
+    to cross at the centre, where ADMM needs tens of iterations per step."""
+    scn = builtin_scenario("paper-2d").with_updates(**{"solver.method": "centralized",
+                                                       "stop.max_steps": CROSSING_FROM})
+    return builtin_scenario("paper-2d"), simulate(scn).states[-1]
+
+
+def fly(scn, states, steps: int):
+    """Step a :class:`Controller` of ``scn`` by hand from ``states``; returns the applied states
+    (steps + 1, M, 2d), the plans (steps, M, N + 1, 2d) and the step records."""
+    model = DoubleIntegrator(scn.dim, scn.dt, scn.discretization)
+    applied, plans, records = [states], [], []
+    with Controller(scn) as mpc:
+        for _ in range(steps):
+            states = model.step(states, mpc.step(states))
+            applied.append(states)
+            plans.append(mpc.plan.states)
+            records.append(mpc.last_record)
+    return np.array(applied), np.array(plans), records
+
+
+def test_the_critical_path_is_recorded_and_bounded(tmp_path):
+    """Serial executor: at most the step's wall time, at least any agent's solve time in it."""
+    scn = builtin_scenario("paper-2d").with_updates(**{"stop.max_steps": 26})  # the last steps iterate
+    result = simulate(scn)
+    for k, record in enumerate(result.records):
+        assert 0.0 < record.critical_path_s <= record.wall_time, f"step {k}"
+        # an agent's solves within a step, summed over its iterations, each lie on the path
+        assert record.critical_path_s >= record.agent_times.max(), f"step {k}"
+        assert not record.deadline_stop
+    assert max(r.admm_iterations for r in result.records) > 1
+    folder = write_run(result, tmp_path / "run")
+    with np.load(folder / "steps.npz") as steps:
+        assert steps["critical_path_s"].shape == (26,) and steps["critical_path_s"].dtype == np.float64
+        assert np.array_equal(steps["critical_path_s"], [r.critical_path_s for r in result.records])
+        assert not steps["deadline_stop"].any()
+    summary = json.loads((folder / "summary.json").read_text())
+    path_ms = 1000.0 * np.array([r.critical_path_s for r in result.records])
+    assert summary["critical_path_ms"]["p99"] == pytest.approx(np.percentile(path_ms, 99))
+    assert summary["critical_path_ms"]["max"] == pytest.approx(path_ms.max())
+    assert summary["deadline_s"] == scn.dt  # no deadline set: counted against the sample period
+    assert summary["deadline_misses"] == int(np.sum(path_ms > 1000.0 * scn.dt))
+    assert summary["deadline_stops"] == 0
+
+
+def test_a_centralised_step_is_all_on_the_critical_path():
+    scn = builtin_scenario("paper-2d").with_updates(**{"solver.method": "centralized", "stop.max_steps": 2})
+    for record in simulate(scn).records:
+        assert record.critical_path_s == record.wall_time and not record.deadline_stop
+
+
+def test_a_tiny_deadline_stops_early_yet_every_plan_stays_safe(crossing):
+    """1 ms: no step affords a second iteration. Each step ends through the repair pass, its
+    plans keep the bodies apart, the overruns are counted, and the run goes on."""
+    scn, states = crossing
+    tiny = scn.with_updates(**{"solver.deadline": 1e-3})
+    applied, plans, records = fly(tiny, states, 30)
+    assert len(records) == 30
+    stopped = [r.deadline_stop for r in records]
+    assert sum(stopped) >= 10  # the crossing would have iterated
+    for k, record in enumerate(records):
+        assert record.admm_iterations == 1, f"step {k}"
+        assert record.repaired or not record.deadline_stop, f"step {k}: stopped early without the repair pass"
+    d = scn.dim
+    assert count_body_collisions(applied[:, :, :d], scn.bodies) == 0
+    for k, plan in enumerate(plans):  # every step's committed plans, with the bodies
+        assert count_body_collisions(np.transpose(plan[:, :, :d], (1, 0, 2)), scn.bodies) == 0, f"step {k}"
+    summary = deadline_summary(records, tiny)
+    assert summary["deadline_s"] == 1e-3 and summary["deadline_stops"] == sum(stopped)
+    assert summary["deadline_misses"] == sum(r.critical_path_s > 1e-3 for r in records) > 0
+
+
+def test_a_deadline_that_never_binds_changes_nothing(crossing):
+    scn, states = crossing
+    plain, _, plain_records = fly(scn, states, 4)
+    roomy, _, roomy_records = fly(scn.with_updates(**{"solver.deadline": 1e6}), states, 4)
+    assert max(r.admm_iterations for r in plain_records) > 10
+    assert np.array_equal(plain, roomy)
+    assert [r.admm_iterations for r in plain_records] == [r.admm_iterations for r in roomy_records]
+    assert not any(r.deadline_stop for r in roomy_records)
+
+
+class FakeTime:
+    """A clock the test advances by hand."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+def test_the_clock_counts_a_batch_as_its_slowest_agent_and_stops_before_an_overrun(monkeypatch):
+    fake = FakeTime()
+    monkeypatch.setattr(admm, "time", fake)
+    clock = StepClock(deadline=1.0)
+
+    class Batch:
+        """An executor whose batch takes ``wall`` seconds, its agents ``calls`` each."""
+
+        def __init__(self, wall: float, calls: list[float]) -> None:
+            self.wall, self.calls = wall, calls
+
+        def solve(self, requests):
+            fake.now += self.wall
+            return [SimpleNamespace(call_time=c, solve_time=0.5 * c) for c in self.calls]
+
+    assert clock.next_iteration()  # the first iteration always runs
+    fake.now += 0.05  # the coordinator's own work
+    clock.solve(Batch(0.6, [0.1, 0.2, 0.3]), [])  # serial: 0.6 s, one core per agent: 0.3 s
+    assert clock.elapsed() == pytest.approx((0.65, 0.35))
+    assert clock.next_iteration()  # 0.35 + 0.35 <= 1
+    clock.solve(Batch(0.6, [0.1, 0.2, 0.3]), [])
+    fake.now += 0.05
+    assert clock.elapsed()[1] == pytest.approx(0.7)
+    assert not clock.next_iteration() and clock.stopped  # 0.7 + 0.35 > 1
+    clock.solve(Batch(0.2, [0.2]), [])  # a repair's re-plan: one agent, all of it on the path
+    assert clock.elapsed()[1] == pytest.approx(0.9)
+    assert StepClock().next_iteration() and StepClock(None).next_iteration()
+
+
+def test_the_run_folder_contract_documents_the_critical_path():
+    keys = {doc.key for doc in contract.SUMMARY_KEYS}
+    assert {"critical_path_ms.median", "critical_path_ms.p95", "critical_path_ms.p99", "critical_path_ms.max",
+            "deadline_misses", "deadline_s", "deadline_stops"} <= keys
+    arrays = {(doc.file, doc.name): doc for doc in contract.ARRAYS}
+    assert arrays["steps.npz", "critical_path_s"].shape == "(T,)"
+    assert arrays["steps.npz", "deadline_stop"].dtype == "bool"
+
+
+def _outcome(seed: int, critical: list[float] | None, misses: int | None) -> CaseOutcome:
+    return CaseOutcome(
+        case=BenchCase("random", 8, seed), steps=2, timed_out=False, all_reached=True, collisions=0,
+        min_separation_ratio=1.2, time_to_goal_s=1.0, cost=1.0, step_ms=[10.0, 20.0],
+        agent_step_ms=[1.0, 2.0, 3.0, 100.0], iterations=[1, 3], solver_failures=0, wall_time_s=4.0 + seed,
+        critical_path_ms=critical, deadline_misses=misses,
+    )
+
+
+def test_bench_reports_critical_path_per_agent_p99_and_wall_time_and_reads_older_reports(tmp_path):
+    runs = [_outcome(0, [5.0, 50.0], 0), _outcome(1, [7.0, 150.0], 1)]
+    (row,) = aggregate(runs)
+    assert row["critical_path_ms_median"] == pytest.approx(28.5)
+    assert row["critical_path_ms_p99"] == pytest.approx(np.percentile([5.0, 50.0, 7.0, 150.0], 99))
+    assert row["agent_ms_p99"] == pytest.approx(np.percentile([1.0, 2.0, 3.0, 100.0] * 2, 99))
+    assert row["wall_s_per_run_median"] == pytest.approx(4.5) and row["deadline_misses"] == 1
+    table = markdown_table([row])
+    assert "critical path ms median | p99 | deadline misses" in table and "wall s per run" in table
+    write_report(tmp_path / "new", runs, "m", 1.0)
+    assert load_outcomes(tmp_path / "new") == runs
+    # a report written before these fields: read, its rows show no critical path
+    data = json.loads((tmp_path / "new" / "bench.json").read_text())
+    for run in data["runs"]:
+        del run["critical_path_ms"], run["deadline_misses"]
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "bench.json").write_text(json.dumps(data))
+    (old_row,) = aggregate(load_outcomes(tmp_path / "old"))
+    assert old_row["critical_path_ms_median"] is None and old_row["deadline_misses"] is None
+    assert old_row["agent_ms_p99"] == row["agent_ms_p99"]
