@@ -424,7 +424,7 @@ def result_paragraph(summary: dict[str, Any], folder: Path) -> str:
         f"{status}{summary['scenario']} ({summary['method']}, {summary['collision']}): "
         f"{reached}/{summary['num_agents']} agents reached their goals in {summary['steps']} steps "
         f"({summary['sim_time_s']:.1f} s simulated), {summary['collisions']} collisions, "
-        f"min separation {sep_text} x delta, closed-loop cost {summary['cost']:.1f}. "
+        f"min separation {sep_text} x (b_i + b_j), closed-loop cost {summary['cost']:.1f}. "
         f"Per-step solve time {median} ms median, {p95} ms p95.{admm} "
         f"Solver failures: {summary['solver_failures']}, deadlocks resolved: {summary['deadlocks']}. "
         f"Wrote {folder}/"
