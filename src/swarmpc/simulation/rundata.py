@@ -24,9 +24,8 @@ from types import MappingProxyType
 from typing import IO, Any
 
 import numpy as np
-import yaml
 
-from swarmpc.config import Scenario, ScenarioError, scenario_from_dict
+from swarmpc.config import Scenario, ScenarioError, parse_yaml_text, scenario_from_dict
 
 __all__ = [
     "ADMM_FILE",
@@ -56,9 +55,6 @@ more is refused before anything is allocated. A run of 1000 agents over 10 000 s
 about 0.5 GiB of states."""
 MAX_TEXT_BYTES = 64 << 20
 """Largest ``summary.json`` or ``scenario.yaml`` that is read (64 MiB)."""
-MAX_YAML_VALUES = 1_000_000
-"""Most values a ``scenario.yaml`` may expand to; YAML aliases can otherwise make a small file
-expand into an exponentially large (or self-referencing) structure."""
 _MAX_MEMBERS = 256
 _MAX_HEADER_BYTES = 10_000
 _NUMERIC_KINDS = "biuf"  # bool, signed and unsigned integers, floats
@@ -355,17 +351,10 @@ def _read_scenario(path: Path, required: bool) -> Scenario | None:
     """The validated scenario of ``scenario.yaml``; None when absent and not required."""
     if not _is_regular_file(path, required):
         return None
-    text = _read_text(path)
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise RunDataError(f"{path}: malformed YAML{where}") from None
-    except RecursionError:
-        raise RunDataError(f"{path}: malformed YAML (nested too deeply)") from None
-    if not _within_values(data, MAX_YAML_VALUES):
-        raise RunDataError(f"{path}: expands to more than {MAX_YAML_VALUES} values (YAML aliases?)")
+        data = parse_yaml_text(_read_text(path), str(path))  # the scenario loader's own bounds
+    except ScenarioError as err:
+        raise RunDataError(str(err)) from None
     try:
         return scenario_from_dict(data, source=str(path))
     except ScenarioError as err:
@@ -373,22 +362,6 @@ def _read_scenario(path: Path, required: bool) -> Scenario | None:
         raise RunDataError(message if message.startswith(str(path)) else f"{path}: {message}") from None
     except RecursionError:
         raise RunDataError(f"{path}: invalid scenario (nested too deeply)") from None
-
-
-def _within_values(data: Any, limit: int) -> bool:
-    """Whether the parsed YAML ``data`` has at most ``limit`` values, aliases counted each time."""
-    pending, seen = [data], 0
-    while pending:
-        item = pending.pop()
-        seen += 1
-        if seen > limit:
-            return False
-        if isinstance(item, dict):
-            pending.extend(item.keys())
-            pending.extend(item.values())
-        elif isinstance(item, list):
-            pending.extend(item)
-    return True
 
 
 # ------------------------------------------------------------------------------------ archives
