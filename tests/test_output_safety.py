@@ -154,7 +154,8 @@ def test_never_destroys(tmp_path_factory, tiny_run, choice, fresh, overwrite, us
     given."""
     root = tmp_path_factory.mktemp("tree")
     candidates = _build_tree(root, tiny_run)
-    target = root / fresh if use_fresh else candidates[choice % len(candidates)]
+    inside = [part for part in Path(fresh).parts if part not in ("/", "..")] or ["out"]  # stay in the tree
+    target = root.joinpath(*inside) if use_fresh else candidates[choice % len(candidates)]
     before = snapshot(root)
     replaced = is_run_folder(target) and overwrite
     prefix = str(target.resolve().relative_to(root.resolve())) + os.sep if replaced else None
