@@ -154,7 +154,7 @@ def test_never_destroys(tmp_path_factory, tiny_run, choice, fresh, overwrite, us
     given."""
     root = tmp_path_factory.mktemp("tree")
     candidates = _build_tree(root, tiny_run)
-    inside = [part for part in Path(fresh).parts if part not in ("/", "..")] or ["out"]  # stay in the tree
+    inside = [part for part in Path(fresh).parts if part != ".." and "/" not in part] or ["out"]  # stay in the tree
     target = root.joinpath(*inside) if use_fresh else candidates[choice % len(candidates)]
     before = snapshot(root)
     replaced = is_run_folder(target) and overwrite
