@@ -393,7 +393,7 @@ def _title(run: RunData, closest: ClosestApproach | None) -> str:
 def build_figure(run_dir: str | Path, max_frames: int = MAX_FRAMES):  # -> plotly.graph_objects.Figure
     """The animated plotly figure of a run folder (2D or 3D after the trajectory's dimension).
 
-    The figure is validated by plotly, which takes a few seconds for a large run;
+    The figure is validated by plotly, which is slow for a large run (it walks every frame);
     :func:`write_view` skips that step (the same dictionary, written without validation).
     """
     import plotly.graph_objects as go
@@ -407,17 +407,74 @@ def figure_dict(run_dir: str | Path, max_frames: int = MAX_FRAMES) -> dict[str, 
 
 
 def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any]:
-    """:func:`figure_dict` of a run already loaded (see :func:`load_run`)."""
-    d, m = run.dim, run.num_agents
-    is3d = d == 3
-    P, V, t, bodies = run.positions, run.velocities, run.t, run.body_half_sizes
-    steps = P.shape[0]
-    colors = agent_colors(m)
-    closest = closest_approach(P, t, bodies)
-    reach = bodies.max(axis=0)
-    frames_k = frame_indices(steps, max_frames, keep=closest.step if closest else None)
+    """:func:`figure_dict` of a run already loaded (see :func:`load_run`).
 
-    # ---- axis ranges: workspace (or padded starts/goals) and everything that moved, fixed
+    The traces come in a fixed order: workspace, obstacles, each agent's path, start and goal,
+    the closest approach, the bodies' legend entry, then the 3M dynamic traces (trail, body,
+    marker per agent) that the frames update by index.
+    """
+    bodies = run.body_half_sizes
+    closest = closest_approach(run.positions, run.t, bodies)
+    frames_k = frame_indices(run.positions.shape[0], max_frames, keep=closest.step if closest else None)
+    canvas = _Canvas(run, run.positions, run.velocities, bodies, agent_colors(run.num_agents), frames_k)
+    obstacles = run.scenario.obstacle_halfspaces() if run.scenario is not None else []
+    lo, hi = _view_box(run, bodies.max(axis=0), obstacles)
+
+    traces: list[Any] = []
+    workspace = _workspace_trace(canvas)
+    if workspace is not None:
+        traces.append(workspace)
+    traces.extend(_obstacle_traces(canvas, obstacles, lo, hi))
+    traces.extend(_agent_static_traces(canvas))
+    closest_traces, annotations = _closest_traces(canvas, closest)
+    traces.extend(closest_traces)
+    traces.append(_bodies_legend(canvas.scatter(**canvas.axes([[None]] * run.dim)), canvas.is3d))
+    first_dynamic = len(traces)
+    hover = _hover_template(canvas.is3d, run.num_agents)
+    traces.extend(_dynamic_traces(canvas, 0, hover, full=True))
+    dynamic_ids = list(range(first_dynamic, len(traces)))
+    frames = [
+        {"name": f"{int(k)}", "data": _dynamic_traces(canvas, pos, hover, full=False), "traces": dynamic_ids}
+        for pos, k in enumerate(frames_k)
+    ]
+    layout = _layout(canvas, closest, annotations, lo, hi)
+    return {"data": traces, "layout": layout, "frames": frames}
+
+
+@dataclass(frozen=True)
+class _Canvas:
+    """What the trace builders of one figure share: the run, its arrays, colours and frames."""
+
+    run: RunData
+    positions: np.ndarray  # (T+1, M, d)
+    velocities: np.ndarray  # (T+1, M, d)
+    bodies: np.ndarray  # (M, d) half-sizes
+    colors: list[str]  # one per agent
+    frames_k: np.ndarray  # the time index of each animation frame
+
+    @property
+    def is3d(self) -> bool:
+        """True for a 3D run (scatter3d, mesh3d and a scene instead of x/y axes)."""
+        return self.run.dim == 3
+
+    def axes(self, coords: list) -> dict[str, Any]:
+        """``coords`` (one list per axis) as a trace's ``x``, ``y`` (and ``z``) keys."""
+        keys = ("x", "y", "z")[: self.run.dim]
+        return dict(zip(keys, coords))
+
+    def scatter(self, **kwargs: Any) -> dict[str, Any]:
+        """A scatter trace (``scatter3d`` in 3D) with the given keys."""
+        return {"type": "scatter3d" if self.is3d else "scatter", **kwargs}
+
+
+def _view_box(run: RunData, reach: np.ndarray, obstacles: list) -> tuple[np.ndarray, np.ndarray]:
+    """Fixed axis ranges: the workspace (or padded starts and goals), everything that moved and
+    every bounded obstacle, padded by 3 % of the largest side.
+
+    Fixed ranges keep the view still while the animation plays; unbounded obstacles are clipped
+    to the view instead of extending it.
+    """
+    d, P = run.dim, run.positions
     if run.scenario is not None:
         lo, hi = (np.asarray(b, float) for b in run.scenario.bounds())
     else:
@@ -428,7 +485,6 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         hi = np.maximum(hi, finite.max(axis=0) + reach)
     lo = np.minimum(lo, run.goal_positions.min(axis=0) - reach)
     hi = np.maximum(hi, run.goal_positions.max(axis=0) + reach)
-    obstacles = run.scenario.obstacle_halfspaces() if run.scenario is not None else []
     span = np.maximum(hi - lo, 1e-6)
     far_lo, far_hi = lo - 10 * span - 10, hi + 10 * span + 10
     for G, g in obstacles:  # bounded obstacles extend the view; unbounded ones are clipped
@@ -436,103 +492,113 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         if verts is not None and np.all(verts > far_lo + 1e-6) and np.all(verts < far_hi - 1e-6):
             lo, hi = np.minimum(lo, verts.min(axis=0)), np.maximum(hi, verts.max(axis=0))
     pad = 0.03 * np.maximum(hi - lo, 1e-6).max()
-    lo, hi = lo - pad, hi + pad
+    return lo - pad, hi + pad
 
-    traces: list[Any] = []
 
-    def axes(coords: list) -> dict[str, Any]:
-        keys = ("x", "y", "z")[:d]
-        return dict(zip(keys, coords))
+def _workspace_trace(canvas: _Canvas) -> dict[str, Any] | None:
+    """The workspace outline (None without a scenario or a workspace)."""
+    scenario = canvas.run.scenario
+    if scenario is None or scenario.workspace is None:
+        return None
+    ws_lo = np.asarray(scenario.workspace.lower, float)
+    ws_hi = np.asarray(scenario.workspace.upper, float)
+    is3d = canvas.is3d
+    return canvas.scatter(
+        **canvas.axes(_box_lines(ws_lo, ws_hi)),
+        mode="lines",
+        # dashed in 2D; solid in 3D, where dashes read as the scene's grid lines
+        line=dict(color=_WORKSPACE_LINE, width=2 if is3d else 1.5, dash="solid" if is3d else "dash"),
+        name="workspace",
+        hoverinfo="skip",
+        meta={"role": "workspace"},
+    )
 
-    kind = "scatter3d" if is3d else "scatter"
 
-    def scatter(**kwargs: Any) -> dict[str, Any]:
-        return {"type": kind, **kwargs}
-
-    # ---- static: workspace, obstacles
-    if run.scenario is not None and run.scenario.workspace is not None:
-        ws_lo = np.asarray(run.scenario.workspace.lower, float)
-        ws_hi = np.asarray(run.scenario.workspace.upper, float)
-        traces.append(
-            scatter(
-                **axes(_box_lines(ws_lo, ws_hi)),
-                mode="lines",
-                # dashed in 2D; solid in 3D, where dashes read as the scene's grid lines
-                line=dict(color=_WORKSPACE_LINE, width=2 if is3d else 1.5, dash="solid" if is3d else "dash"),
-                name="workspace",
-                hoverinfo="skip",
-                meta={"role": "workspace"},
-            )
-        )
+def _obstacle_traces(canvas: _Canvas, obstacles: list, lo: np.ndarray, hi: np.ndarray) -> list[dict[str, Any]]:
+    """The static obstacles clipped to the view [lo, hi]: one filled polygon each in 2D, a
+    translucent hull mesh plus its edges in 3D (one legend entry for all of them)."""
+    traces: list[dict[str, Any]] = []
     for n, (G, g) in enumerate(obstacles):
         verts = polytope_vertices(G, g, lo, hi)
         if verts is None:
             continue
-        label = f"obstacle {n}"
         common = dict(
             name="obstacles",
             legendgroup="obstacles",
             showlegend=n == 0,
             meta={"role": "obstacle", "index": n},
         )
-        if not is3d:
-            closed = np.vstack([verts, verts[:1]])
-            traces.append(
-                dict(
-                    type="scatter",
-                    x=_rlist(closed[:, 0]),
-                    y=_rlist(closed[:, 1]),
-                    mode="lines",
-                    fill="toself",
-                    fillcolor=_OBSTACLE_FILL,
-                    line=dict(color=_OBSTACLE_LINE, width=1.5),
-                    hoveron="fills",
-                    text=label,
-                    hoverinfo="text",
-                    **common,
-                )
-            )
+        if canvas.is3d:
+            traces.extend(_obstacle_mesh(canvas, n, verts, common))
         else:
-            points, faces, edges = _hull_mesh(verts)
-            traces.append(
-                dict(
-                    type="mesh3d",
-                    x=_rlist(points[:, 0]),
-                    y=_rlist(points[:, 1]),
-                    z=_rlist(points[:, 2]),
-                    i=faces[:, 0].tolist(),
-                    j=faces[:, 1].tolist(),
-                    k=faces[:, 2].tolist(),
-                    color="rgb(110, 118, 132)",
-                    opacity=0.35,
-                    flatshading=True,
-                    hovertext=label,
-                    hoverinfo="text",
-                    **common,
-                )
-            )
-            traces.append(
-                dict(
-                    type="scatter3d",
-                    **axes(_segments(points, edges)),
-                    mode="lines",
-                    line=dict(color=_OBSTACLE_LINE, width=3),
-                    name=f"{label} edges",
-                    legendgroup="obstacles",
-                    showlegend=False,
-                    hoverinfo="skip",
-                    meta={"role": "obstacle-edges", "index": n},
-                )
-            )
+            traces.append(_obstacle_polygon(n, verts, common))
+    return traces
 
-    # ---- static per agent: whole path (faint), start, goal
+
+def _obstacle_polygon(n: int, verts: np.ndarray, common: dict[str, Any]) -> dict[str, Any]:
+    """Obstacle ``n`` in 2D: its polygon ``verts`` (counter-clockwise), filled, hover on the fill."""
+    closed = np.vstack([verts, verts[:1]])
+    return dict(
+        type="scatter",
+        x=_rlist(closed[:, 0]),
+        y=_rlist(closed[:, 1]),
+        mode="lines",
+        fill="toself",
+        fillcolor=_OBSTACLE_FILL,
+        line=dict(color=_OBSTACLE_LINE, width=1.5),
+        hoveron="fills",
+        text=f"obstacle {n}",
+        hoverinfo="text",
+        **common,
+    )
+
+
+def _obstacle_mesh(canvas: _Canvas, n: int, verts: np.ndarray, common: dict[str, Any]) -> list[dict[str, Any]]:
+    """Obstacle ``n`` in 3D: a translucent mesh of the hull of ``verts`` and, as lines, the hull's
+    true edges (not the diagonals of its triangulation)."""
+    label = f"obstacle {n}"
+    points, faces, edges = _hull_mesh(verts)
+    mesh = dict(
+        type="mesh3d",
+        x=_rlist(points[:, 0]),
+        y=_rlist(points[:, 1]),
+        z=_rlist(points[:, 2]),
+        i=faces[:, 0].tolist(),
+        j=faces[:, 1].tolist(),
+        k=faces[:, 2].tolist(),
+        color="rgb(110, 118, 132)",
+        opacity=0.35,
+        flatshading=True,
+        hovertext=label,
+        hoverinfo="text",
+        **common,
+    )
+    outline = dict(
+        type="scatter3d",
+        **canvas.axes(_segments(points, edges)),
+        mode="lines",
+        line=dict(color=_OBSTACLE_LINE, width=3),
+        name=f"{label} edges",
+        legendgroup="obstacles",
+        showlegend=False,
+        hoverinfo="skip",
+        meta={"role": "obstacle-edges", "index": n},
+    )
+    return [mesh, outline]
+
+
+def _agent_static_traces(canvas: _Canvas) -> list[dict[str, Any]]:
+    """Per agent: its whole path (faint, dotted), its start and its goal marker."""
+    run, P, colors, is3d = canvas.run, canvas.positions, canvas.colors, canvas.is3d
+    d = run.dim
     goal_symbol = "diamond" if is3d else "star"
     start_symbol = "circle-open" if is3d else "circle"
-    for i in range(m):
+    traces: list[dict[str, Any]] = []
+    for i in range(run.num_agents):
         group = dict(legendgroup=f"agent {i}", showlegend=False)
         traces.append(
-            scatter(
-                **axes([_rlist(P[:, i, a]) for a in range(d)]),
+            canvas.scatter(
+                **canvas.axes([_rlist(P[:, i, a]) for a in range(d)]),
                 mode="lines",
                 line=dict(color=_rgba(colors[i], 0.35), width=2 if is3d else 1.5, dash="dot"),
                 name=f"agent {i} path",
@@ -543,8 +609,8 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         )
         start = P[0, i]
         traces.append(
-            scatter(
-                **axes([[_round(start[a])] for a in range(d)]),
+            canvas.scatter(
+                **canvas.axes([[_round(start[a])] for a in range(d)]),
                 mode="markers",
                 marker=dict(
                     symbol=start_symbol,
@@ -560,83 +626,82 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         )
         goal = run.goal_positions[i]
         traces.append(
-            scatter(
-                **axes([[_round(goal[a])] for a in range(d)]),
+            canvas.scatter(
+                **canvas.axes([[_round(goal[a])] for a in range(d)]),
                 mode="markers",
-                marker=dict(
-                    symbol=goal_symbol,
-                    size=6 if is3d else 14,
-                    color=colors[i],
-                    line=dict(color="black", width=1),
-                ),
+                marker=dict(symbol=goal_symbol, size=6 if is3d else 14, color=colors[i], line=dict(color="black", width=1)),
                 name=f"agent {i} goal",
                 hoverinfo="skip",  # the agent marker sits on it at the end: its hover card wins
                 meta={"role": "goal", "agent": i},
                 **group,
             )
         )
+    return traces
 
-    # ---- closest approach (static marker + annotation)
-    annotations: list[dict[str, Any]] = []
-    if closest is not None:
-        i, j = closest.pair
-        pi, pj = P[closest.step, i], P[closest.step, j]
-        mid = 0.5 * (pi + pj)
-        pair_ratio = float(np.max(np.abs(pi - pj) / (bodies[i] + bodies[j])))  # < 1: a collision
-        text = (
-            f"closest approach: {closest.distance:.4g} m (inf-norm), t = {closest.time:.2f} s"
-        )
-        traces.append(
-            scatter(
-                **axes([[_round(pi[a]), _round(pj[a])] for a in range(d)]),
-                mode="lines",
-                line=dict(color=_CLOSEST_COLOR, width=2 if is3d else 1.5, dash="dash"),
-                name="closest pair",
-                legendgroup="closest",
-                showlegend=False,
-                hoverinfo="skip",
-                meta={"role": "closest-pair", "pair": [i, j]},
-            )
-        )
-        traces.append(
-            scatter(
-                **axes([[_round(mid[a])] for a in range(d)]),
-                mode="markers",
-                marker=dict(symbol="x", size=6 if is3d else 11, color=_CLOSEST_COLOR),
-                name="closest approach",
-                legendgroup="closest",
-                hovertemplate=(
-                    f"{text}<br>agents {i} and {j}, separation / δ_ij = {pair_ratio:.3f}"
-                    f"<br>Euclidean {float(np.linalg.norm(pi - pj)):.4g} m<extra></extra>"
-                ),
-                meta={
-                    "role": "closest",
-                    "distance": closest.distance,
-                    "time": closest.time,
-                    "step": closest.step,
-                    "pair": [i, j],
-                    "ratio": closest.ratio,
-                },
-            )
-        )
-        note = dict(
-            text=text,
-            showarrow=True,
-            arrowhead=2,
-            arrowcolor=_CLOSEST_COLOR,
-            ax=40,
-            ay=-40,
-            font=dict(color=_CLOSEST_COLOR, size=12),
-            bgcolor="rgba(255, 255, 255, 0.85)",
-            bordercolor=_CLOSEST_COLOR,
-            borderwidth=1,
-        )
-        if is3d:
-            annotations.append(dict(x=float(mid[0]), y=float(mid[1]), z=float(mid[2]), **note))
-        else:
-            annotations.append(dict(x=float(mid[0]), y=float(mid[1]), xref="x", yref="y", **note))
 
-    # ---- dynamic per agent: trail, body, marker (these are what frames update)
+def _closest_traces(
+    canvas: _Canvas, closest: ClosestApproach | None
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The closest approach of the run: a dashed line between the pair and a marker at its
+    midpoint (with a hover card), and the annotation that labels it; nothing for a lone agent."""
+    if closest is None:
+        return [], []
+    P, bodies, d, is3d = canvas.positions, canvas.bodies, canvas.run.dim, canvas.is3d
+    i, j = closest.pair
+    pi, pj = P[closest.step, i], P[closest.step, j]
+    mid = 0.5 * (pi + pj)
+    pair_ratio = float(np.max(np.abs(pi - pj) / (bodies[i] + bodies[j])))  # < 1: a collision
+    text = f"closest approach: {closest.distance:.4g} m (inf-norm), t = {closest.time:.2f} s"
+    pair_line = canvas.scatter(
+        **canvas.axes([[_round(pi[a]), _round(pj[a])] for a in range(d)]),
+        mode="lines",
+        line=dict(color=_CLOSEST_COLOR, width=2 if is3d else 1.5, dash="dash"),
+        name="closest pair",
+        legendgroup="closest",
+        showlegend=False,
+        hoverinfo="skip",
+        meta={"role": "closest-pair", "pair": [i, j]},
+    )
+    marker = canvas.scatter(
+        **canvas.axes([[_round(mid[a])] for a in range(d)]),
+        mode="markers",
+        marker=dict(symbol="x", size=6 if is3d else 11, color=_CLOSEST_COLOR),
+        name="closest approach",
+        legendgroup="closest",
+        hovertemplate=(
+            f"{text}<br>agents {i} and {j}, separation / δ_ij = {pair_ratio:.3f}"
+            f"<br>Euclidean {float(np.linalg.norm(pi - pj)):.4g} m<extra></extra>"
+        ),
+        meta={
+            "role": "closest",
+            "distance": closest.distance,
+            "time": closest.time,
+            "step": closest.step,
+            "pair": [i, j],
+            "ratio": closest.ratio,
+        },
+    )
+    note = dict(
+        text=text,
+        showarrow=True,
+        arrowhead=2,
+        arrowcolor=_CLOSEST_COLOR,
+        ax=40,
+        ay=-40,
+        font=dict(color=_CLOSEST_COLOR, size=12),
+        bgcolor="rgba(255, 255, 255, 0.85)",
+        bordercolor=_CLOSEST_COLOR,
+        borderwidth=1,
+    )
+    if is3d:
+        annotation = dict(x=float(mid[0]), y=float(mid[1]), z=float(mid[2]), **note)
+    else:
+        annotation = dict(x=float(mid[0]), y=float(mid[1]), xref="x", yref="y", **note)
+    return [pair_line, marker], [annotation]
+
+
+def _hover_template(is3d: bool, m: int) -> str:
+    """The agents' hover card; its ``customdata`` is the list built in :func:`_agent_marker`."""
     hover = (
         "<b>agent %{customdata[0]}</b> · t = %{customdata[8]:.2f} s<br>"
         + ("position (%{x:.2f}, %{y:.2f}, %{z:.2f})<br>" if is3d else "position (%{x:.2f}, %{y:.2f})<br>")
@@ -649,162 +714,131 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
             "nearest, Euclidean: %{customdata[5]:.3f} m (agent %{customdata[6]})<br>"
             "separation / δ_ij: %{customdata[7]:.2f}"
         )
-    hover += "<extra></extra>"
+    return hover + "<extra></extra>"
 
-    def dynamic(k_pos: int, full: bool) -> list[dict[str, Any]]:
-        """The 3M dynamic traces (trail, body, marker per agent) at frame position ``k_pos``.
 
-        ``full`` gives complete traces (the figure's initial data); otherwise only what changes
-        from frame to frame (plotly.js merges a frame's data into the traces it names).
-        """
-        k = int(frames_k[k_pos])
-        trail_k = _trail_indices(frames_k, k_pos)
-        n_inf, id_inf, n_two, id_two, ratio, overlapping = _neighbour_table(P[k], bodies)
-        out: list[dict[str, Any]] = []
-        for i in range(m):
-            p = P[k, i]
-            colliding = bool(overlapping[i])
-            edge = _CLOSEST_COLOR if colliding else colors[i]
-            trail = scatter(**axes([_rlist(P[trail_k, i, a], 3) for a in range(d)]))
-            if full:
-                trail.update(
-                    mode="lines",
-                    line=dict(color=colors[i], width=4 if is3d else 2.5),
-                    name=f"agent {i} trail",
-                    legendgroup=f"agent {i}",
-                    showlegend=False,
-                    hoverinfo="skip",
-                    meta={"role": "trail", "agent": i},
-                )
-            out.append(trail)
+def _dynamic_traces(canvas: _Canvas, k_pos: int, hover: str, *, full: bool) -> list[dict[str, Any]]:
+    """The 3M dynamic traces (trail, body, marker per agent) at frame position ``k_pos``.
 
-            box = scatter(**axes(_box_lines(p - bodies[i], p + bodies[i], 3)))
-            box["line"] = dict(color=edge, width=(3 if colliding else 2) if is3d else (2 if colliding else 1))
-            if not is3d:
-                box["fillcolor"] = _rgba(edge, 0.22 if colliding else 0.12)
-            if full:
-                box.update(
-                    mode="lines",
-                    name=f"agent {i} body",
-                    legendgroup=f"agent {i}",
-                    showlegend=False,
-                    hoverinfo="skip",
-                    meta={"role": "box", "agent": i},
-                )
-                if not is3d:
-                    box["fill"] = "toself"
-            out.append(box)
+    ``full`` gives complete traces (the figure's initial data); otherwise only what changes
+    from frame to frame (plotly.js merges a frame's data into the traces it names), which
+    keeps the page small.
+    """
+    k = int(canvas.frames_k[k_pos])
+    trail_k = _trail_indices(canvas.frames_k, k_pos)
+    neighbours = _neighbour_table(canvas.positions[k], canvas.bodies)
+    overlapping = neighbours[5]
+    out: list[dict[str, Any]] = []
+    for i in range(canvas.run.num_agents):
+        colliding = bool(overlapping[i])
+        out.append(_agent_trail(canvas, i, trail_k, full))
+        out.append(_agent_box(canvas, i, k, colliding, full))
+        out.append(_agent_marker(canvas, i, k, neighbours, hover, full))
+    return out
 
-            custom = [
-                i,
-                _round(np.linalg.norm(V[k, i])),
-                _round(np.linalg.norm(p - run.goal_positions[i])),
-                _round(n_inf[i]),
-                int(id_inf[i]),
-                _round(n_two[i]),
-                int(id_two[i]),
-                _round(ratio[i]),
-                _round(t[k]),
-            ]
-            marker = scatter(
-                **axes([[_round(p[a])] for a in range(d)]),
-                customdata=[custom],
-                marker=dict(line=dict(color=_CLOSEST_COLOR if colliding else "white")),
-            )
-            if full:
-                marker.update(
-                    mode="markers+text",
-                    marker=dict(
-                        size=7 if is3d else 11,
-                        color=colors[i],
-                        line=dict(color=marker["marker"]["line"]["color"], width=1 if is3d else 2),
-                    ),
-                    text=[str(i)],
-                    textposition="top center",
-                    textfont=dict(size=11, color=colors[i]),
-                    hovertemplate=hover,
-                    name=f"agent {i}",
-                    legendgroup=f"agent {i}",
-                    showlegend=True,
-                    meta={"role": "agent", "agent": i},
-                )
-            out.append(marker)
-        return out
 
-    traces.append(_bodies_legend(scatter(**axes([[None]] * d)), is3d))
-    first_dynamic = len(traces)
-    traces.extend(dynamic(0, full=True))
-    dynamic_ids = list(range(first_dynamic, len(traces)))
-
-    frame_ms = int(np.clip(1000.0 * run.dt * max(1.0, (steps - 1) / max(1, len(frames_k) - 1)), 40, 150))
-    redraw = is3d  # 3D (WebGL) traces need a redraw per frame; 2D animates without one
-    frames = [
-        {"name": f"{int(k)}", "data": dynamic(pos, full=False), "traces": dynamic_ids}
-        for pos, k in enumerate(frames_k)
-    ]
-
-    play_args = {
-        "frame": {"duration": frame_ms, "redraw": redraw},
-        "fromcurrent": True,
-        "transition": {"duration": 0},
-        "mode": "immediate",
-    }
-    jump = {"frame": {"duration": 0, "redraw": redraw}, "mode": "immediate", "transition": {"duration": 0}}
-    updatemenus = [
-        dict(
-            type="buttons",
-            direction="left",
-            showactive=False,
-            x=0.0,
-            y=0.0,
-            xanchor="left",
-            yanchor="top",
-            pad=dict(t=45, r=10),
-            buttons=[
-                dict(label="▶ Play", method="animate", args=[None, play_args]),
-                dict(
-                    label="❚❚ Pause",
-                    method="animate",
-                    args=[[None], jump],
-                ),
-            ],
+def _agent_trail(canvas: _Canvas, i: int, trail_k: np.ndarray, full: bool) -> dict[str, Any]:
+    """Agent ``i``'s trail through the time indices ``trail_k`` (its path so far)."""
+    P, is3d = canvas.positions, canvas.is3d
+    trail = canvas.scatter(**canvas.axes([_rlist(P[trail_k, i, a], 3) for a in range(canvas.run.dim)]))
+    if full:
+        trail.update(
+            mode="lines",
+            line=dict(color=canvas.colors[i], width=4 if is3d else 2.5),
+            name=f"agent {i} trail",
+            legendgroup=f"agent {i}",
+            showlegend=False,
+            hoverinfo="skip",
+            meta={"role": "trail", "agent": i},
         )
+    return trail
+
+
+def _agent_box(canvas: _Canvas, i: int, k: int, colliding: bool, full: bool) -> dict[str, Any]:
+    """Agent ``i``'s body at time index ``k``: its box, red and bolder while it overlaps another's."""
+    p, half, is3d = canvas.positions[k, i], canvas.bodies[i], canvas.is3d
+    edge = _CLOSEST_COLOR if colliding else canvas.colors[i]
+    box = canvas.scatter(**canvas.axes(_box_lines(p - half, p + half, 3)))
+    box["line"] = dict(color=edge, width=(3 if colliding else 2) if is3d else (2 if colliding else 1))
+    if not is3d:
+        box["fillcolor"] = _rgba(edge, 0.22 if colliding else 0.12)
+    if full:
+        box.update(
+            mode="lines",
+            name=f"agent {i} body",
+            legendgroup=f"agent {i}",
+            showlegend=False,
+            hoverinfo="skip",
+            meta={"role": "box", "agent": i},
+        )
+        if not is3d:
+            box["fill"] = "toself"
+    return box
+
+
+def _agent_marker(
+    canvas: _Canvas, i: int, k: int, neighbours: tuple[np.ndarray, ...], hover: str, full: bool
+) -> dict[str, Any]:
+    """Agent ``i``'s position marker at time index ``k`` with the data of its hover card.
+
+    ``neighbours`` is :func:`_neighbour_table` at ``k``; the marker's rim turns red while the
+    agent's body overlaps another's.
+    """
+    n_inf, id_inf, n_two, id_two, ratio, overlapping = neighbours
+    run, p, color, is3d = canvas.run, canvas.positions[k, i], canvas.colors[i], canvas.is3d
+    colliding = bool(overlapping[i])
+    custom = [
+        i,
+        _round(np.linalg.norm(canvas.velocities[k, i])),
+        _round(np.linalg.norm(p - run.goal_positions[i])),
+        _round(n_inf[i]),
+        int(id_inf[i]),
+        _round(n_two[i]),
+        int(id_two[i]),
+        _round(ratio[i]),
+        _round(run.t[k]),
     ]
-    many = len(frames_k) > 25
-    sliders = [
-        dict(
-            active=0,
-            x=0.16,
-            y=0.0,
-            len=0.84,
-            xanchor="left",
-            yanchor="top",
-            pad=dict(t=30, b=10),
-            currentvalue=dict(
-                prefix="t = ", suffix=" s", visible=True, xanchor="left", font=dict(size=14, color="#2a3f5f")
+    marker = canvas.scatter(
+        **canvas.axes([[_round(p[a])] for a in range(run.dim)]),
+        customdata=[custom],
+        marker=dict(line=dict(color=_CLOSEST_COLOR if colliding else "white")),
+    )
+    if full:
+        marker.update(
+            mode="markers+text",
+            marker=dict(
+                size=7 if is3d else 11,
+                color=color,
+                line=dict(color=marker["marker"]["line"]["color"], width=1 if is3d else 2),
             ),
-            # with many steps the per-step tick labels overlap: hide them, keep the current value
-            font=dict(color="rgba(0,0,0,0)" if many else "#444", size=10),
-            ticklen=2 if many else 5,
-            transition=dict(duration=0),
-            steps=[
-                dict(
-                    method="animate",
-                    label=f"{t[k]:.2f}",
-                    args=[
-                        [f"{int(k)}"],
-                        jump,
-                    ],
-                )
-                for k in frames_k
-            ],
+            text=[str(i)],
+            textposition="top center",
+            textfont=dict(size=11, color=color),
+            hovertemplate=hover,
+            name=f"agent {i}",
+            legendgroup=f"agent {i}",
+            showlegend=True,
+            meta={"role": "agent", "agent": i},
         )
-    ]
+    return marker
 
+
+def _layout(
+    canvas: _Canvas,
+    closest: ClosestApproach | None,
+    annotations: list[dict[str, Any]],
+    lo: np.ndarray,
+    hi: np.ndarray,
+) -> dict[str, Any]:
+    """The figure's layout: title, play buttons, time slider, the axes fixed to [lo, hi] (a
+    scene in 3D) and the closest approach's annotation; ``meta`` says what the page shows."""
+    run, frames_k = canvas.run, canvas.frames_k
+    redraw = canvas.is3d  # 3D (WebGL) traces need a redraw per frame; 2D animates without one
+    jump = {"frame": {"duration": 0, "redraw": redraw}, "mode": "immediate", "transition": {"duration": 0}}
     layout: dict[str, Any] = dict(
         title=dict(text=_title(run, closest), x=0.5, xanchor="center", font=dict(size=16)),
-        updatemenus=updatemenus,
-        sliders=sliders,
+        updatemenus=[_play_buttons(run, frames_k, redraw, jump)],
+        sliders=[_time_slider(run.t, frames_k, jump)],
         hovermode="closest",
         template=_template("plotly_white"),
         legend=dict(itemsizing="constant", tracegroupgap=2),
@@ -812,34 +846,100 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
         uirevision="swarmpc-view",
         meta={
             "swarmpc": "view",
-            "dim": d,
-            "num_agents": m,
+            "dim": run.dim,
+            "num_agents": run.num_agents,
             "frames": len(frames_k),
             "frame_steps": [int(k) for k in frames_k],
         },
     )
-    if is3d:
-        size = hi - lo
-        ratio = size / size.max()
-        layout["scene"] = dict(
-            xaxis=dict(range=[float(lo[0]), float(hi[0])], autorange=False, title=dict(text="x [m]")),
-            yaxis=dict(range=[float(lo[1]), float(hi[1])], autorange=False, title=dict(text="y [m]")),
-            zaxis=dict(range=[float(lo[2]), float(hi[2])], autorange=False, title=dict(text="z [m]")),
-            aspectmode="manual",
-            aspectratio=dict(x=float(ratio[0]), y=float(ratio[1]), z=float(ratio[2])),
-            camera=dict(eye=dict(x=1.25, y=-1.4, z=0.8)),
-            annotations=annotations,
-            uirevision="swarmpc-view",
-        )
+    if canvas.is3d:
+        layout["scene"] = _scene(lo, hi, annotations)
     else:
-        layout["xaxis"] = dict(
+        layout.update(_plane_axes(lo, hi))
+        layout["annotations"] = annotations
+    return layout
+
+
+def _play_buttons(run: RunData, frames_k: np.ndarray, redraw: bool, jump: dict[str, Any]) -> dict[str, Any]:
+    """The play and pause buttons.
+
+    Play shows each frame for about the time it spans in the run (at least 40 ms, at most 150 ms,
+    so a long run still plays in reasonable time); pause jumps to the current frame.
+    """
+    steps = run.positions.shape[0]
+    frame_ms = int(np.clip(1000.0 * run.dt * max(1.0, (steps - 1) / max(1, len(frames_k) - 1)), 40, 150))
+    play_args = {
+        "frame": {"duration": frame_ms, "redraw": redraw},
+        "fromcurrent": True,
+        "transition": {"duration": 0},
+        "mode": "immediate",
+    }
+    return dict(
+        type="buttons",
+        direction="left",
+        showactive=False,
+        x=0.0,
+        y=0.0,
+        xanchor="left",
+        yanchor="top",
+        pad=dict(t=45, r=10),
+        buttons=[
+            dict(label="▶ Play", method="animate", args=[None, play_args]),
+            dict(label="❚❚ Pause", method="animate", args=[[None], jump]),
+        ],
+    )
+
+
+def _time_slider(t: np.ndarray, frames_k: np.ndarray, jump: dict[str, Any]) -> dict[str, Any]:
+    """The time slider: one step per frame, labelled with its time in seconds."""
+    many = len(frames_k) > 25
+    return dict(
+        active=0,
+        x=0.16,
+        y=0.0,
+        len=0.84,
+        xanchor="left",
+        yanchor="top",
+        pad=dict(t=30, b=10),
+        currentvalue=dict(
+            prefix="t = ", suffix=" s", visible=True, xanchor="left", font=dict(size=14, color="#2a3f5f")
+        ),
+        # with many steps the per-step tick labels overlap: hide them, keep the current value
+        font=dict(color="rgba(0,0,0,0)" if many else "#444", size=10),
+        ticklen=2 if many else 5,
+        transition=dict(duration=0),
+        steps=[dict(method="animate", label=f"{t[k]:.2f}", args=[[f"{int(k)}"], jump]) for k in frames_k],
+    )
+
+
+def _scene(lo: np.ndarray, hi: np.ndarray, annotations: list[dict[str, Any]]) -> dict[str, Any]:
+    """The 3D scene: axes fixed to [lo, hi] at their true proportions, a fixed camera, and the
+    annotations (which in 3D belong to the scene)."""
+    size = hi - lo
+    ratio = size / size.max()
+    return dict(
+        xaxis=dict(range=[float(lo[0]), float(hi[0])], autorange=False, title=dict(text="x [m]")),
+        yaxis=dict(range=[float(lo[1]), float(hi[1])], autorange=False, title=dict(text="y [m]")),
+        zaxis=dict(range=[float(lo[2]), float(hi[2])], autorange=False, title=dict(text="z [m]")),
+        aspectmode="manual",
+        aspectratio=dict(x=float(ratio[0]), y=float(ratio[1]), z=float(ratio[2])),
+        camera=dict(eye=dict(x=1.25, y=-1.4, z=0.8)),
+        annotations=annotations,
+        uirevision="swarmpc-view",
+    )
+
+
+def _plane_axes(lo: np.ndarray, hi: np.ndarray) -> dict[str, Any]:
+    """The 2D axes, fixed to [lo, hi] with equal scales (a metre is as long on both axes)."""
+    return dict(
+        xaxis=dict(
             range=[float(lo[0]), float(hi[0])],
             autorange=False,
             title=dict(text="x [m]"),
             constrain="domain",
             zeroline=False,
-        )
-        layout["yaxis"] = dict(
+        ),
+        yaxis=dict(
             range=[float(lo[1]), float(hi[1])],
             autorange=False,
             title=dict(text="y [m]"),
@@ -847,10 +947,8 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
             scaleratio=1,
             constrain="domain",
             zeroline=False,
-        )
-        layout["annotations"] = annotations
-
-    return {"data": traces, "layout": layout, "frames": frames}
+        ),
+    )
 
 
 # Pausing (or scrubbing the slider during play) interrupts the running Plotly.animate call; plotly.js

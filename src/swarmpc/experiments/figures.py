@@ -47,7 +47,8 @@ def _figure(width: float, height: float) -> Figure:
 
 
 def save_png(fig: Figure, path: PathLike, dpi: int = DPI, palette: bool = False) -> Path:
-    """Save a figure as PNG; ``palette`` re-encodes it with 256 colours (3-4x smaller, for docs)."""
+    """Save a figure as PNG; ``palette`` re-encodes it with 256 colours (a much smaller file, as
+    for the images under ``docs/img``)."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=dpi, format="png")

@@ -117,7 +117,8 @@ class ReproducePlan:
 
 
 def plan_runs(quick: bool = False) -> ReproducePlan:
-    """The paper's set; ``quick``: fewer Δ values, 25 MPC steps, a smaller guess study (< 2 min)."""
+    """The paper's set; ``quick``: fewer Δ values, 25 MPC steps, a smaller guess study (a smoke test of
+    the whole pipeline, not results)."""
     if quick:
         return ReproducePlan(
             quick=True,

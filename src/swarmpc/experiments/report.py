@@ -260,7 +260,7 @@ def render_report(out: Path, plan: ReproducePlan, records: Sequence[RunRecord], 
 
     figures = manifest.get("figures", {})
     failed = [run for run in manifest["runs"] if run["error"]]
-    guess_doc = _docs_link(out, "initial-guesses.md")
+    guess_doc = _docs_link(out, "lab/initial-guesses.md")  # the study's measurement record
     mode = (f"quick (a smoke test: runs capped at {plan.max_steps} MPC steps; not results)" if plan.quick
             else "full")
     load = manifest.get("loadavg_before"), manifest.get("loadavg_after")

@@ -1,7 +1,8 @@
 """Run results: a frozen result object and its run folder, written atomically.
 
 A run folder holds ``summary.json``, ``trajectory.npz`` and ``scenario.yaml`` (the contract of
-design.md section 8; ``trajectory.npz`` adds ``disturbances`` when the run injected process noise),
+:mod:`swarmpc.simulation.contract`, published as ``docs/run-folder-reference.md``;
+``trajectory.npz`` adds ``disturbances`` when the run injected process noise),
 ``steps.npz`` (per-step solver records: ``failures`` = failed solve calls, ``fallback`` = which
 agents applied a safe fallback plan, ``repaired`` = ADMM repair pass, ``critical_path_s`` = the
 step's compute with one core per agent, ``deadline_stop`` = ADMM cut short by ``solver.deadline``)
