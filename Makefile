@@ -17,6 +17,7 @@ run: $(STAMP)
 test: $(STAMP)
 	if [ -f scripts/install-browser.sh ]; then bash scripts/install-browser.sh; fi
 	$(PY) -m pytest
+	$(PY) -m pytest -m 'loop and not slow'
 
 test-all: $(STAMP)
 	$(PY) -m pytest -m ""

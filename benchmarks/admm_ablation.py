@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -20,7 +21,7 @@ from swarmpc.simulation.loop import simulate
 from swarmpc.solvers.admm import ADMMConfig, ADMMSolver
 
 OUT = Path(__file__).parent / "out"
-VARIANTS: dict[str, dict] = {
+VARIANTS: dict[str, dict[str, Any]] = {
     "default (free copies, rho 1, owner weight 5, on-demand coupling)": {},
     "copies obey the dynamics": {"dynamic_copies": True},
     "residual balancing (adaptive rho)": {"adaptive_rho": True},
@@ -40,7 +41,10 @@ def main() -> None:
             config = dataclasses.replace(ADMMConfig(), **change)
             settings = OCPSettings.from_scenario(scn)
             solver = ADMMSolver(settings, scn.num_agents, scn.delta_vector, config)
-            result = simulate(scn, solver=solver)
+            try:
+                result = simulate(scn, solver=solver)
+            finally:
+                solver.close()  # ours: simulate closes only what it built
             s = result.summary
             iterations = np.array([r.admm_iterations for r in result.records])
             rows.append({
@@ -60,7 +64,8 @@ def main() -> None:
         lines.append(
             f"| {r['scenario']} | {r['variant']} | {'yes' if r['all_reached'] else 'no'} | {r['steps']} | "
             f"{r['collisions']} | {r['cost']:.1f} | {r['cost_vs_central_pct']:+.1f}% | {r['step_ms_median']:.1f} | "
-            f"{r['step_ms_p95']:.1f} | {r['iter_median']:.0f} | {r['iter_mean']:.1f} | {r['repairs']} | {r['deadlocks']} |"
+            f"{r['step_ms_p95']:.1f} | {r['iter_median']:.0f} | {r['iter_mean']:.1f} | {r['repairs']} | "
+            f"{r['deadlocks']} |"
         )
     (OUT / "admm_ablation.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

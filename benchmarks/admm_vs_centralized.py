@@ -14,13 +14,14 @@ import itertools
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from swarmpc.batch import Task, run_batch
 
 OUT = Path(__file__).parent / "out"
 
 
-def run_case(case: tuple[str, float, str, str]) -> dict:
+def run_case(case: tuple[str, float, str, str]) -> dict[str, Any]:
     from swarmpc.scenarios import builtin_scenario
     from swarmpc.simulation.loop import simulate
 
@@ -51,7 +52,7 @@ def fmt(value: object, digits: int = 1) -> str:
     return str(value)
 
 
-def table(rows: list[dict]) -> str:
+def table(rows: list[dict[str, Any]]) -> str:
     head = ("| scenario | Δ | form | method | step ms median | p95 | ADMM it. median (after 1st) | max | "
             "closed-loop cost | cost vs central | steps | all reached | collisions | min sep/Δ | repairs |")
     lines = [head, "|" + "---|" * 15]

@@ -26,8 +26,10 @@ import json
 import os
 import sys
 import time
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import numpy as np
 
@@ -100,12 +102,12 @@ def pillars_variant(seed: int) -> dict[str, Any]:
     halves: list[float] = []
     for _ in range(5000):
         c, h = rng.uniform(-1.4, 1.4, size=2), float(rng.uniform(0.15, 0.3))
-        if all(np.max(np.abs(c - q)) - h - hq >= 0.7 for q, hq in zip(centers, halves)):
+        if all(np.max(np.abs(c - q)) - h - hq >= 0.7 for q, hq in zip(centers, halves, strict=True)):
             centers.append(c)
             halves.append(h)
             if len(centers) == count:
                 break
-    obstacles = [_box(c.tolist(), [h, h]) for c, h in zip(centers, halves)]
+    obstacles = [_box(c.tolist(), [h, h]) for c, h in zip(centers, halves, strict=True)]
     m = int(rng.integers(2, 4))
     starts, goals = [], []
     for i in range(m):
@@ -170,7 +172,7 @@ def window_3d_variant(seed: int) -> dict[str, Any]:
 
 
 def _agents(starts: np.ndarray, goals: np.ndarray) -> list[dict[str, list[float]]]:
-    return [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()} for s, g in zip(starts, goals)]
+    return [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()} for s, g in zip(starts, goals, strict=True)]
 
 
 FAMILIES = {"wall-door": wall_door_variant, "pillars": pillars_variant, "u-trap": u_trap_variant,
@@ -228,7 +230,7 @@ def run_one(task: tuple[dict[str, Any] | str, str, int | None]) -> dict[str, Any
     if max_steps is not None:
         updates["stop.max_steps"] = max_steps
     scn = scn.with_updates(**updates)
-    provider = controller.GuessProvider
+    ablation: AbstractContextManager[Any] = nullcontext()
     if config == NO_STEER:
         class NoWaypoints(GuessProvider):
             """The RRT state guess only: the MPC always aims at the real goal."""
@@ -236,13 +238,12 @@ def run_one(task: tuple[dict[str, Any] | str, str, int | None]) -> dict[str, Any
             def goals(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
                 return goals
 
-        controller.GuessProvider = NoWaypoints  # type: ignore[misc]  # ablation hook, this process only
-    try:
+        # ablation hook, this process only: the controller builds this provider while the run lasts
+        ablation = mock.patch.object(controller, "GuessProvider", NoWaypoints)
+    with ablation:
         started, cpu = time.perf_counter(), time.process_time()
         result = loop.simulate(scn)
         wall, cpu = time.perf_counter() - started, time.process_time() - cpu
-    finally:
-        controller.GuessProvider = provider  # type: ignore[misc]
     d = scn.dim
     states = result.states
     positions = states[:, :, :d]
@@ -326,19 +327,22 @@ def aggregate(rows: list[dict[str, Any]], configs: list[str]) -> list[str]:
             plans = sum(x["fresh"] for x in rrt)
             reuses = sum(x["reused"] for x in rrt)
             failed = sum(x["failed"] for x in rrt)
+            cpu_ms = sum(r["cpu_ms_per_step"] * r["steps"] for r in runs) / max(sum(r["steps"] for r in runs), 1)
             lines.append(
-                f"| {c} | {sum(r['success'] for r in runs)}/{len(runs)} | {sum(r['reached'] for r in runs)}/{len(runs)} | "
+                f"| {c} | {sum(r['success'] for r in runs)}/{len(runs)} | "
+                f"{sum(r['reached'] for r in runs)}/{len(runs)} | "
                 f"{sum(r['max_final_gap'] > TRAPPED for r in runs)} | {sum(r['collisions'] > 0 for r in runs)} | "
                 f"{sum((r['max_penetration'] or -1) > 1e-9 for r in runs)} | "
-                f"{_fmt(np.median(steps) if steps.size else None)} | {_fmt(np.percentile(steps, 95) if steps.size else None)} | "
-                f"{_fmt(sum(r['cpu_ms_per_step'] * r['steps'] for r in runs) / max(sum(r['steps'] for r in runs), 1))} | "
+                f"{_fmt(np.median(steps) if steps.size else None)} | "
+                f"{_fmt(np.percentile(steps, 95) if steps.size else None)} | "
+                f"{_fmt(cpu_ms)} | "
                 f"{_fmt(its.mean() if its.size else None, 2)} | {sum(r['solver_failures'] for r in runs)} | "
                 + (f"{plans} / {reuses} / {failed} |" if rrt else "- |")
             )
         lines += ["", f"Paired on the {len(common)} scenarios that every configuration above solved "
                   "(per-run medians, then the median over scenarios; cost relative to `auto`):", "",
-                  "| guess | step ms (median of run medians) | run p95 (median) | CPU ms/step (median) | ADMM it. mean | "
-                  "steps | cost vs auto (median) | cost vs auto (worst) |", "|" + "---|" * 8]
+                  "| guess | step ms (median of run medians) | run p95 (median) | CPU ms/step (median) | "
+                  "ADMM it. mean | steps | cost vs auto (median) | cost vs auto (worst) |", "|" + "---|" * 8]
         for c in present:
             runs = [by[(s, c)] for s in common]
             if not runs:
@@ -350,7 +354,8 @@ def aggregate(rows: list[dict[str, Any]], configs: list[str]) -> list[str]:
                 f"{_fmt(np.median([r['cpu_ms_per_step'] for r in runs]))} | "
                 f"{_fmt(np.mean([r['iterations_mean'] for r in runs]), 2)} | "
                 f"{_fmt(np.median([r['steps'] for r in runs]), 0)} | "
-                f"{_fmt(np.median(ratio) if ratio else None, 1)}% | {_fmt(max(ratio, key=abs) if ratio else None, 1)}% |"
+                f"{_fmt(np.median(ratio) if ratio else None, 1)}% | "
+                f"{_fmt(max(ratio, key=abs) if ratio else None, 1)}% |"
             )
         lines.append("")
     return lines
@@ -406,22 +411,25 @@ def main() -> None:
     rows_file = OUT / f"{args.name}_rows.jsonl"
     os.environ["GUESS_STUDY_RUNS"] = f"{args.name}_runs"  # inherited by the worker processes
     if args.report:
-        rows = [json.loads(line) for line in rows_file.read_text().splitlines() if line.strip()]
+        saved: list[dict[str, Any]] = [json.loads(line) for line in rows_file.read_text().splitlines() if line.strip()]
         header = ["## Initial-guess study (generated by benchmarks/guess_study.py, rebuilt with --report)", "",
-                  f"{len(rows)} runs; see the JSON for the settings."]
-        write_report(sorted(rows, key=lambda r: (r["scenario"], r["config"])), list(CONFIGS), header, args.name)
+                  f"{len(saved)} runs; see the JSON for the settings."]
+        write_report(sorted(saved, key=lambda r: (r["scenario"], r["config"])), list(CONFIGS), header, args.name)
         return
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    paper: tuple[str, ...]
     if args.quick:
         counts, max_steps, paper = {"wall-door": 1, "u-trap": 1}, 120, ()
         paper_steps: int | None = None
     else:
-        counts, max_steps, paper = {"wall-door": 7, "pillars": 7, "u-trap": 6, "window-3d": 1}, args.max_steps, PAPER_SCENARIOS
+        counts = {"wall-door": 7, "pillars": 7, "u-trap": 6, "window-3d": 1}
+        max_steps, paper = args.max_steps, PAPER_SCENARIOS
         paper_steps = None
     scenarios = generate(counts, max_steps)
     tasks: list[tuple[dict[str, Any] | str, str, int | None]] = []
     if args.no_paper:
         paper = ()
+    spec: dict[str, Any] | str
     for spec in [*scenarios, *paper]:  # the paper swaps are the longest runs: last, so a cut-off
         for config in chosen:            # study still holds every obstacle scenario
             if config == NO_STEER and (isinstance(spec, str) or spec["name"].startswith("pillars")):

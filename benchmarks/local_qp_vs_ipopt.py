@@ -89,9 +89,9 @@ def pooled(runs: list[dict[str, Any]]) -> dict[str, Any]:
     iterations = runs[0]["iterations"]
     return {
         **outcomes[0],
-        "agent_step_ms": dict(zip(("median", "p95", "p99"), q("agent_step_ms", 50, 95, 99))),
-        "call_ms": dict(zip(("median", "p95", "p99"), q("call_ms", 50, 95, 99))),
-        "step_ms": dict(zip(("median", "p99"), q("step_ms", 50, 99))),
+        "agent_step_ms": dict(zip(("median", "p95", "p99"), q("agent_step_ms", 50, 95, 99), strict=True)),
+        "call_ms": dict(zip(("median", "p95", "p99"), q("call_ms", 50, 95, 99), strict=True)),
+        "step_ms": dict(zip(("median", "p99"), q("step_ms", 50, 99), strict=True)),
         "admm_iterations": {"mean": float(iterations.mean()), "max": int(iterations.max())},
         "wall_s": [round(r["wall_s"], 2) for r in runs],
     }

@@ -153,7 +153,7 @@ def main() -> None:
                 own = solution.x["X"] - ref.x["X"]
                 deviation[name].append(float(np.max(np.abs(own))))
 
-    rows = []
+    rows: list[dict[str, Any]] = []
     for name in candidates:
         if name in errors:
             rows.append({"solver": name, "error": errors[name], "build_s": build_time[name]})

@@ -5,8 +5,9 @@ For paper-2d and circle-8 (hard form, centralised solver: the disturbance handli
 closed loop and is the same for ADMM), every noise level sigma in ``LEVELS`` draws process noise
 (std sigma per position and per velocity component, per step) and measurement noise of the same
 size, seeded by the scenario seed. Under noise the paper's weak weights (Q = 0.1, R = 1) let the
-agents wander about their goals by ~0.1-0.2 m, so the goal test is 0.2 m / 0.3 m/s; each case runs without tightening and with ``TIGHTENING`` added to
-delta in the planner. Separations are recomputed from the trajectories against the TRUE delta.
+agents wander about their goals by ~0.1-0.2 m, so the goal test is 0.2 m / 0.3 m/s; each case runs
+without tightening and with ``TIGHTENING`` added to delta in the planner. Separations are
+recomputed from the trajectories against the TRUE delta.
 Writes ``noise_study.md`` and ``noise_study.json`` to ``--out``.
 
     nice -n 10 python benchmarks/noise_study.py --jobs 2 [--seeds 3]

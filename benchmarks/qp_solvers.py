@@ -36,9 +36,10 @@ import argparse
 import json
 import platform
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -48,7 +49,12 @@ from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.loop import simulate
 from swarmpc.solvers import admm
 from swarmpc.solvers.qp_local import (
-    LocalShape, OSQPBackend, QPAnswer, QPLocalLadder, QPLocalOptions, SequentialLocalQP,
+    LocalShape,
+    OSQPBackend,
+    QPAnswer,
+    QPLocalLadder,
+    QPLocalOptions,
+    SequentialLocalQP,
 )
 
 OUT = Path(__file__).parent / "results"
@@ -500,11 +506,11 @@ def replay(s: OCPSettings, recorded: list[dict[str, Any]], options: QPLocalOptio
         fixed, copies = call["fixed"], call["copies"]
         previous = last.get(call["key"])
         shape = LocalShape(copies, 0, fixed is not None and any(k.startswith("C") for k in fixed), s.collision)
-        duals = None
+        duals: tuple[np.ndarray, np.ndarray] | None = None
         if call["guess"] is not None:
             guess: Any = call["guess"]
         elif previous is not None and previous[0] == shape:
-            guess, duals = previous[1].x_vec, (None, previous[1].lam_g)
+            guess, duals = previous[1].x_vec, (previous[1].lam_x, previous[1].lam_g)
         elif previous is not None:
             guess = {"X": previous[1].x["X"], "U": previous[1].x["U"],
                      **{f"C{c}": call["params"][f"Z{c}"] for c in range(copies)}}

@@ -6,9 +6,10 @@ M more often), 2D or 3D, with or without static boxes, hard or soft collision fo
 goals at least ``2 delta`` apart and clear of the obstacles, a workspace whose area (volume)
 grows with M. A share of the swarms with M <= 8 is solved by ADMM, the rest centrally
 (``ADMM_SHARE``; ADMM run serially costs 10-20x more). Weights are brisker than the paper's
-(Q = 1, R = 0.5, Qf = 5) and the acceleration is limited to 2 m/s^2. Every run is scored from its trajectory alone: collisions recounted with the
-inf-norm against delta, goal reaching, obstacle penetration; plus the run's own solver failure and
-deadlock counts. Writes ``stress.md`` (tables) and ``stress.json`` (every row) to ``--out``.
+(Q = 1, R = 0.5, Qf = 5) and the acceleration is limited to 2 m/s^2. Every run is scored from its
+trajectory alone: collisions recounted with the inf-norm against delta, goal reaching, obstacle
+penetration; plus the run's own solver failure and deadlock counts. Writes ``stress.md`` (tables)
+and ``stress.json`` (every row) to ``--out``.
 
     nice -n 10 python benchmarks/stress.py --jobs 2            # the full suite (200 scenarios)
     python benchmarks/stress.py --count 20 --small --jobs 2     # the quick subset the tests run
@@ -108,7 +109,8 @@ def stress_scenario(index: int, seed: int = 0, small: bool = False) -> dict[str,
         "workspace": {"lower": (lower - margin).round(4).tolist(), "upper": (upper + margin).round(4).tolist()},
         "obstacles": [{"box": {"center": c.round(4).tolist(), "half_size": h.round(4).tolist()}}
                       for c, h in obstacles],
-        "agents": [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()} for s, g in zip(starts, goals)],
+        "agents": [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()}
+                   for s, g in zip(starts, goals, strict=True)],
         "solver": {"method": method},
         "stop": {"goal_tolerance": 0.1, "max_steps": 250},
     }

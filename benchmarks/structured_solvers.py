@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -141,11 +142,13 @@ def measure(s: OCPSettings, copies: int, repeats: int, rng: np.random.Generator)
     lbx, ubx = data["lbx"].copy(), data["ubx"].copy()
     lbx[: state.size] = ubx[: state.size] = state  # the measured state pins x_0
     structure = data["structure"]
-    sqp = {"print_header": False, "print_iteration": False, "print_status": False, "print_time": False,
-           "expand": True, "max_iter": 50, "convexify_strategy": "regularize"}
-    builders = {
-        "ipopt": lambda: ca.nlpsol("ipopt_cold", "ipopt", problem, dict(LOCAL_IPOPT_OPTIONS)),
-        "ipopt warm": lambda: ca.nlpsol("ipopt_warm", "ipopt", problem, {**LOCAL_IPOPT_OPTIONS, **WARM_START_OPTIONS}),
+    ipopt: dict[str, Any] = dict(LOCAL_IPOPT_OPTIONS)
+    ipopt_warm: dict[str, Any] = {**LOCAL_IPOPT_OPTIONS, **WARM_START_OPTIONS}
+    sqp: dict[str, Any] = {"print_header": False, "print_iteration": False, "print_status": False,
+                           "print_time": False, "expand": True, "max_iter": 50, "convexify_strategy": "regularize"}
+    builders: dict[str, Callable[[], ca.Function]] = {
+        "ipopt": lambda: ca.nlpsol("ipopt_cold", "ipopt", problem, ipopt),
+        "ipopt warm": lambda: ca.nlpsol("ipopt_warm", "ipopt", problem, ipopt_warm),
         "fatrop": lambda: ca.nlpsol("fatrop", "fatrop", problem, {
             "expand": True, "print_time": False, "structure_detection": "manual", **structure,
             "fatrop": {"print_level": 0, "tol": 1e-6}}),

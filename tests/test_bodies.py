@@ -194,7 +194,7 @@ def test_the_closed_loop_plans_with_each_agents_body(method):
         getattr(solver, "close", lambda: None)()
 
 
-@pytest.fixture(scope="module", params=["centralized", "admm"])
+@pytest.fixture(scope="module", params=["centralized", pytest.param("admm", marks=pytest.mark.loop)])
 def pair_run(request, tmp_path_factory) -> Path:
     """The unequal pair (bodies 0.1 and 0.3, Δ = 0.2) swapping head-on, as a run folder."""
     scn = scenario_from_dict(_with(PAIR, solver={"method": request.param}))
@@ -220,6 +220,7 @@ def test_the_run_folder_records_the_bodies(pair_run):
     assert np.array_equal(load_run(pair_run).bodies, scn.bodies)
 
 
+@pytest.mark.loop
 @pytest.mark.parametrize("method", ["centralized", "admm"])
 def test_bodies_stay_out_of_the_wall(method, tmp_path):
     """Two agents of different bodies (0.25 and 0.08) through a door: no body's box ever meets a

@@ -31,6 +31,7 @@ def serial_run(tmp_path_factory):
     return run_folder(tmp_path_factory.mktemp("serial"), "serial", "--max-steps", str(STEPS), "--executor", "serial")
 
 
+@pytest.mark.loop
 def test_process_executor_matches_serial(serial_run, tmp_path):
     summary, arrays = run_folder(tmp_path, "process", "--max-steps", str(STEPS), "--executor", "process",
                                  "--workers", "2")
@@ -43,6 +44,7 @@ def test_process_executor_matches_serial(serial_run, tmp_path):
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None,
                     reason="Ray is not installed (pip install 'swarmpc[ray]')")
+@pytest.mark.loop
 def test_ray_executor_matches_serial(serial_run, tmp_path):
     summary, arrays = run_folder(tmp_path, "ray", "--max-steps", "6", "--executor", "ray", "--workers", "2")
     # --max-steps only ends the loop: a 6-step run is the first 7 states of the 12-step one

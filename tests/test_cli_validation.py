@@ -57,6 +57,9 @@ CASES = {
     "NaN in a polytope G": (
         with_(obstacles=[{"polytope": {"G": [[1, 0], [0, float("nan")]], "g": [3, 3]}}]),
         "obstacles[0].polytope.G", "finite"),
+    "a removed solver key": (
+        with_(solver={"component_stop": False}), "solver.component_stop", "removed",
+        "docs/lab/admm.md#component-stop"),
 }
 
 

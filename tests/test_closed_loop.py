@@ -12,7 +12,7 @@ from swarmpc.model.geometry import obstacle_penetration
 from swarmpc.scenarios import builtin_scenario
 
 
-@pytest.fixture(scope="module", params=["paper-2d", "paper-3d"])
+@pytest.fixture(scope="module", params=["paper-2d", pytest.param("paper-3d", marks=pytest.mark.loop)])
 def centralized_run(request, tmp_path_factory):
     out = tmp_path_factory.mktemp("runs") / request.param
     done = run_cli("run", request.param, "--method", "centralized", "--out", str(out), "--quiet")
@@ -45,6 +45,7 @@ def test_contract_keys_and_shapes(centralized_run):
     assert summary["method"] == "centralized" and summary["admm_iterations"] is None
 
 
+@pytest.mark.loop
 def test_static_obstacles_are_avoided(tmp_path):
     out = tmp_path / "door"
     done = run_cli("run", "wall-door", "--method", "centralized", "--out", str(out), "--quiet")

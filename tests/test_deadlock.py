@@ -24,7 +24,7 @@ def _check_swap(folder) -> dict:
     return summary
 
 
-@pytest.mark.parametrize("agents", [2, 4, 8])
+@pytest.mark.parametrize("agents", [2, 4, pytest.param(8, marks=pytest.mark.loop)])
 def test_circle_swap_unjams(agents, tmp_path):
     scn = builtin_scenario("circle", agents=agents).with_updates(**{"solver.method": "centralized"})
     summary = _check_swap(write_run(simulate(scn), tmp_path / f"circle-{agents}"))
@@ -320,6 +320,7 @@ def _corridor_swap(max_steps: int):
                  max_steps)
 
 
+@pytest.mark.loop
 def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_path):
     scn = _corridor_swap(300)
     summary, arrays = load_folder(write_run(simulate(scn), tmp_path / "lift"))
@@ -334,6 +335,7 @@ def test_a_swap_in_a_corridor_is_untied_by_a_lift_and_not_by_turning_right(tmp_p
     assert not summary["all_reached"] and summary["deadlocks"] >= 10
 
 
+@pytest.mark.loop
 def test_a_swap_under_a_low_ceiling_is_untied_by_a_side_step(tmp_path):
     # 0.4 m between floor and ceiling: no room to pass over or under, only beside
     scn = _swap("low-ceiling-swap", [-1.0, -1.0, 0.2], [1.0, 1.0, 0.6], [-0.2, 0.0, 0.4], [0.2, 0.0, 0.4], 300)

@@ -9,6 +9,8 @@ from conftest import load_folder, recount_collisions, run_cli
 from swarmpc.config import load_scenario
 from swarmpc.model.geometry import obstacle_penetration
 
+pytestmark = pytest.mark.loop  # whole runs through the command line
+
 
 def final_goal_gaps(folder):
     _summary, arrays = load_folder(folder)

@@ -20,7 +20,9 @@ def _like_a_terminal() -> None:
 
 
 @pytest.mark.parametrize("sig, executor", [
-    (signal.SIGINT, "serial"), (signal.SIGTERM, "serial"), (signal.SIGTERM, "process"), (signal.SIGTERM, "ray"),
+    (signal.SIGINT, "serial"), pytest.param(signal.SIGTERM, "serial", marks=pytest.mark.loop),
+    pytest.param(signal.SIGTERM, "process", marks=pytest.mark.loop),
+    pytest.param(signal.SIGTERM, "ray", marks=pytest.mark.loop),
 ])
 def test_a_signal_gives_a_complete_interrupted_folder(tmp_path, sig, executor):
     """SIGINT and SIGTERM end the loop after the step; the interrupted run is written whole, no

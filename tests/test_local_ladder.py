@@ -8,10 +8,64 @@ import numpy as np
 import pytest
 
 from swarmpc.formulation.ocp import OCPSettings, build_local
+from swarmpc.model.geometry import as_bodies
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.guessing import GuessProvider
-from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalAgentFactory, LocalRequest, LocalSolverLadder
-from swarmpc.solvers.executors import SerialExecutor
+from swarmpc.solvers.admm import (
+    ADMMConfig,
+    ADMMSolver,
+    AnswerCache,
+    LocalAgent,
+    LocalAgentFactory,
+    LocalRequest,
+    LocalSolverLadder,
+)
+from swarmpc.solvers.admm.ladders import solve_warm_or_cold
+
+
+class CountingLadder:
+    """A ladder that counts the solves asked of it (an answer sent again asks none)."""
+
+    def __init__(self, inner: LocalSolverLadder) -> None:
+        self.inner = inner
+        self.solves = 0
+
+    def solve(self, *args, **kwargs):
+        self.solves += 1
+        return self.inner.solve(*args, **kwargs)
+
+    def verified(self, *args, **kwargs):
+        return self.inner.verified(*args, **kwargs)
+
+
+class CountedAgents:
+    """The agents ``factory`` makes, all solving through one :class:`CountingLadder` around the
+    factory's shared ladder, each with a new ``cache``."""
+
+    def __init__(self, factory: LocalAgentFactory, cache: type[AnswerCache] = AnswerCache) -> None:
+        self.factory = factory
+        self.cache = cache
+        self.ladder = CountingLadder(factory.ladder)
+
+    def __call__(self, i: int) -> LocalAgent:
+        agent = self.factory(i)
+        assert agent.nlp is self.factory.ladder  # one ladder for every agent: the count is the swarm's
+        return LocalAgent(i, agent.settings, self.ladder, agent.dynamic_copies, agent.seed_duals, agent.rescue,
+                          cache=self.cache())
+
+
+class SolveLoneAgain(AnswerCache):
+    """Never answers a lone problem from the cache: every call is solved."""
+
+    def lone_answer(self, request):
+        return None
+
+
+def counted_solver(scn, s: OCPSettings, config: ADMMConfig, cache: type[AnswerCache] = AnswerCache):
+    """An ADMM solver of ``scn`` whose agents count their solves, and the ladder that counts them."""
+    bodies = as_bodies(scn.delta_vector, scn.num_agents)
+    agents = CountedAgents(LocalAgentFactory.for_config(s, bodies, config), cache)
+    return ADMMSolver(s, scn.num_agents, scn.delta_vector, config, agents=agents), agents.ladder
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +91,7 @@ def test_spread_out_swarm_builds_only_the_smallest_problem():
     guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
     plan = solver.plan(states, goals, guess)
     ladder = solver.executor._agents[0].nlp  # agents of one executor share one ladder
-    assert set(ladder._built) == {(0, 0)}
+    assert ladder.built == {(0, 0)}
     assert plan.admm_iterations == 1 and not plan.fallback.any()
     solver.close()
 
@@ -68,26 +122,28 @@ def test_warm_started_multipliers_reach_the_same_solution_in_fewer_iterations():
 def test_a_failed_warm_start_is_retried_cold(settings):
     """Multipliers carried from the last iterate can mislead IPOPT; the ladder then solves again
     without them and reports the time of both attempts."""
-    ladder = LocalSolverLadder(settings, 2, False, warm_start=True)
-    real = ladder.solver(1)
-    calls = []
+    real = LocalSolverLadder(settings, 2, False, warm_start=True).solver(1)
+    calls, times = [], []
 
     class WarmFails:
         def solve(self, params, guess, lam_x=None, lam_g=None, fixed=None):
             calls.append(lam_g is not None)
             solution = real.solve(params, guess, fixed=fixed)
-            return replace(solution, success=False, status="Infeasible_Problem_Detected") if lam_g is not None else solution
+            times.append(solution.solve_time)
+            if lam_g is None:
+                return solution
+            return replace(solution, success=False, status="Infeasible_Problem_Detected")
 
-    ladder._built[(1, 0)] = WarmFails()
     scn = builtin_scenario("paper-2d")
     states, goals = scn.start_states(), scn.goal_states()
     d, K = settings.dim, settings.num_constrained
     params = {"x0": states[0], "goal": goals[0], "delta": scn.delta_vector, "rho": 10.0, "owner_weight": 5.0,
               "Z": np.zeros((d, K)), "Y": np.zeros((d, K)), "Z0": np.ones((d, K)), "Y0": np.zeros((d, K))}
-    first = ladder.solve(params, {}, copies=1)
-    retried = ladder.solve(params, first.x, copies=1, duals=(first.lam_x, first.lam_g))
-    assert calls == [False, True, False]
+    first = real.solve(params, {})
+    retried = solve_warm_or_cold(WarmFails(), params, first.x, None, (first.lam_x, first.lam_g))
+    assert calls == [True, False]
     assert retried.success and np.allclose(retried.x["X"], first.x["X"], atol=1e-6)
+    assert retried.solve_time == pytest.approx(sum(times))
 
 
 def _lone_request(scn, s, state, new_step: bool) -> LocalRequest:
@@ -107,18 +163,16 @@ def test_unchanged_lone_problem_is_answered_without_a_solve():
     or a new step is solved again."""
     scn = builtin_scenario("paper-2d")
     s = OCPSettings.from_scenario(scn)
-    agent = LocalAgentFactory(s, 3)(0)
-    solves = []
-    original = agent.nlp.solve
-    agent.nlp.solve = lambda *a, **k: solves.append(1) or original(*a, **k)  # type: ignore[method-assign]
+    ladder = CountingLadder(LocalSolverLadder(s, 3, dynamic_copies=True))
+    agent = LocalAgent(0, s, ladder, dynamic_copies=True)
     state = scn.start_states()[0]
     first = agent.solve(_lone_request(scn, s, state, new_step=True))
     again = agent.solve(_lone_request(scn, s, state, new_step=False))
-    assert first.success and len(solves) == 1
+    assert first.success and ladder.solves == 1
     assert again.solve_time == 0.0 and np.array_equal(again.states, first.states)
     agent.solve(_lone_request(scn, s, state + 0.01, new_step=False))
     agent.solve(_lone_request(scn, s, state + 0.01, new_step=True))
-    assert len(solves) == 3
+    assert ladder.solves == 3
 
 
 def test_skipping_unchanged_lone_problems_keeps_the_plans():
@@ -129,19 +183,11 @@ def test_skipping_unchanged_lone_problems_keeps_the_plans():
     states, goals = scn.start_states(), scn.goal_states()
     guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
     outcomes = []
-    for skip in (True, False):
-        executor = SerialExecutor()
+    for cache in (AnswerCache, SolveLoneAgain):
         # a small coupling margin leaves some of the eight agents lone at the start
-        solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(coupling_margin=0.1), executor)
-        solves = []
-        ladder = executor._agents[0].nlp
-        original = ladder.solve
-        ladder.solve = lambda *a, **k: solves.append(1) or original(*a, **k)  # type: ignore[method-assign]
-        if not skip:
-            for agent in executor._agents.values():
-                agent._unchanged_lone_problem = lambda request: False
+        solver, ladder = counted_solver(scn, s, ADMMConfig(coupling_margin=0.1), cache)
         plan = solver.plan(states, goals, guess)
-        outcomes.append((plan, len(solves)))
+        outcomes.append((plan, ladder.solves))
         solver.close()
     (skipped, fewer), (full, more) = outcomes
     assert full.admm_iterations > 1 and fewer < more
@@ -150,11 +196,12 @@ def test_skipping_unchanged_lone_problems_keeps_the_plans():
 
 
 def _coupled_request(scn, s, guess, z_shift: float, new_step: bool) -> LocalRequest:
-    """Agent 0 coupled with agent 2 (they meet mid-way), consensus targets shifted by ``z_shift``."""
+    """Agent 0 coupled with agent 2 (they meet mid-way), consensus targets shifted by ``z_shift``.
+    The last iteration's penalty is 0: no multiplier step, so the targets are the z given."""
     d, first = s.dim, s.first_constrained_step
     states = scn.start_states()
     return LocalRequest(
-        agent=0, state=states[0], goal=scn.goal_states()[0], delta=scn.delta_vector, rho=10.0, rho_previous=10.0,
+        agent=0, state=states[0], goal=scn.goal_states()[0], delta=scn.delta_vector, rho=10.0, rho_previous=0.0,
         owner_weight=5.0, new_step=new_step, z_own=guess[0][first:, :d].T + z_shift, neighbours=(2,),
         z_neighbours=guess[2][first:, :d].T[None] + z_shift, neighbour_states=states[[2]], guess=guess[0],
         reuse_tol=1e-4,
@@ -168,23 +215,20 @@ def test_agent_reuses_its_answer_only_while_its_targets_stay_within_reuse_tol():
     scn = builtin_scenario("paper-2d")
     s = OCPSettings.from_scenario(scn)
     guess = GuessProvider(scn, s, "straight").guesses(scn.start_states(), scn.goal_states(), None)
-    agent = LocalAgentFactory(s, 3, dynamic_copies=False, warm_start=True)(0)
-    agent._multipliers_step = lambda request: None  # keep gamma at zero: the targets are the z given
-    solves = []
-    original = agent.nlp.solve
-    agent.nlp.solve = lambda *a, **k: solves.append(1) or original(*a, **k)  # type: ignore[method-assign]
+    ladder = CountingLadder(LocalSolverLadder(s, 3, dynamic_copies=False, warm_start=True))
+    agent = LocalAgent(0, s, ladder, dynamic_copies=False)
     first = agent.solve(_coupled_request(scn, s, guess, 0.0, new_step=True))
-    assert first.success and len(solves) == 1
+    assert first.success and ladder.solves == 1
     near = agent.solve(_coupled_request(scn, s, guess, 5e-5, new_step=False))
-    assert len(solves) == 1 and near.solve_time == 0.0 and np.array_equal(near.states, first.states)
+    assert ladder.solves == 1 and near.solve_time == 0.0 and np.array_equal(near.states, first.states)
     exact = LocalAgentFactory(s, 3, dynamic_copies=False)(0).solve(_coupled_request(scn, s, guess, 5e-5, True))
     assert np.max(np.abs(exact.own - near.own)) <= 1e-3
     agent.solve(replace(_coupled_request(scn, s, guess, 5e-5, new_step=False), rho=20.0))
-    assert len(solves) == 2
+    assert ladder.solves == 2
     agent.solve(_coupled_request(scn, s, guess, 5e-4, new_step=False))
-    assert len(solves) == 3
+    assert ladder.solves == 3
     agent.solve(_coupled_request(scn, s, guess, 5e-4, new_step=True))
-    assert len(solves) == 4
+    assert ladder.solves == 4
 
 
 def test_reused_answers_keep_the_step_plans_with_fewer_solves():
@@ -196,13 +240,8 @@ def test_reused_answers_keep_the_step_plans_with_fewer_solves():
     guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
     outcomes = []
     for reuse_tol in (1e-4, 0.0):
-        executor = SerialExecutor()
-        solver = ADMMSolver(s, scn.num_agents, scn.delta_vector, ADMMConfig(reuse_tol=reuse_tol), executor)
-        solves = []
-        ladder = executor._agents[0].nlp
-        original = ladder.solve
-        ladder.solve = lambda *a, **k: solves.append(1) or original(*a, **k)  # type: ignore[method-assign]
-        outcomes.append((solver.plan(states, goals, guess), len(solves)))
+        solver, ladder = counted_solver(scn, s, ADMMConfig(reuse_tol=reuse_tol))
+        outcomes.append((solver.plan(states, goals, guess), ladder.solves))
         solver.close()
     (reused, fewer), (full, more) = outcomes
     assert full.admm_iterations > 1 and fewer < more

@@ -20,19 +20,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import run_cli
 from swarmpc.config import Scenario, scenario_from_dict
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.dynamics import DoubleIntegrator
 from swarmpc.model.geometry import box_signed_distance
 from swarmpc.scenarios import builtin_scenario
-from swarmpc.simulation.controller import make_solver
+from swarmpc.simulation.controller import admm_config, make_solver
+from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.simulation.loop import simulate
 from swarmpc.simulation.metrics import closed_loop_cost
-from swarmpc.solvers import admm
 from swarmpc.solvers.admm import (
     ADMMConfig,
     ADMMSolver,
     FallbackSolution,
+    LocalAgent,
     LocalAgentFactory,
     LocalSolverLadder,
     QPLocalSolverLadder,
@@ -40,7 +42,6 @@ from swarmpc.solvers.admm import (
 )
 from swarmpc.solvers.executors import SerialExecutor
 from swarmpc.solvers.qp_local import LocalShape, OSQPBackend, QPAnswer, QPLocalLadder, QPLocalOptions
-from conftest import run_cli
 
 PINNED = Path(__file__).parent / "data" / "pinned-trajectories.npz"
 CASES = {"paper-2d": ("paper-2d", {}), "paper-3d": ("paper-3d", {}), "wall-door": ("wall-door", {}),
@@ -109,6 +110,7 @@ def body_overlaps(states: np.ndarray, scn: Scenario) -> int:
     return count
 
 
+@pytest.mark.loop
 @pytest.mark.parametrize("case", list(CASES))
 def test_closed_loop_qp_reaches_every_goal_without_collision_at_the_ipopt_cost(qp_runs, case):
     scn, result, tally = qp_runs[case]
@@ -127,24 +129,60 @@ def start_from(scn: Scenario, states: np.ndarray) -> Scenario:
     return scn.with_updates(agents=agents)
 
 
-def record_ipopt_problems(scn: Scenario, steps: int, monkeypatch: pytest.MonkeyPatch) -> list[dict]:
-    """Every local problem with copies the IPOPT path solves in the first ``steps`` MPC steps of
-    ``scn`` (hard pair rows; rescue problems left out): settings, parameters, start as named
-    blocks, pinned blocks, sizes and IPOPT's answer."""
-    recorded: list[dict] = []
-    original = LocalSolverLadder.solve
+class RecordingLadder:
+    """The IPOPT ladder ``inner``, recording every problem with copies (hard pair rows) it solves:
+    settings, parameters, start as named blocks, pinned blocks, sizes and IPOPT's answer."""
 
-    def recording(self, params, guess, fixed=None, *, copies, planes=0, duals=None):  # type: ignore[no-untyped-def]
-        answer = original(self, params, guess, fixed, copies=copies, planes=planes, duals=duals)
-        if copies and self.pair_collision is None:
-            blocks = self.solver(copies, planes).x_layout.unpack(guess) if isinstance(guess, np.ndarray) else guess
-            recorded.append({"settings": self.settings, "params": dict(params), "guess": dict(blocks),
+    def __init__(self, inner: LocalSolverLadder, log: list[dict]) -> None:
+        self.inner = inner
+        self.log = log
+
+    def solve(self, params, guess, fixed=None, *, copies, planes=0, duals=None):  # type: ignore[no-untyped-def]
+        answer = self.inner.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals)
+        if copies and self.inner.pair_collision is None:
+            layout = self.inner.solver(copies, planes).x_layout
+            blocks = layout.unpack(guess) if isinstance(guess, np.ndarray) else guess
+            self.log.append({"settings": self.inner.settings, "params": dict(params), "guess": dict(blocks),
                              "fixed": fixed, "copies": copies, "planes": planes, "ipopt": answer})
         return answer
 
-    with monkeypatch.context() as patch:
-        patch.setattr(LocalSolverLadder, "solve", recording)
-        simulate(scn.with_updates(**{"stop.max_steps": steps, "solver.local": "ipopt"}))
+    def verified(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        return self.inner.verified(*args, **kwargs)
+
+
+class RecordingAgents:
+    """The agents ``factory`` makes, each solving its local steps through a :class:`RecordingLadder`
+    (its rescue problems are not recorded)."""
+
+    def __init__(self, factory: LocalAgentFactory, log: list[dict]) -> None:
+        self.factory = factory
+        self.log = log
+
+    def __call__(self, i: int) -> LocalAgent:
+        agent = self.factory(i)
+        return LocalAgent(i, agent.settings, RecordingLadder(agent.nlp, self.log), agent.dynamic_copies,
+                          agent.seed_duals, agent.rescue)
+
+
+def admm_solver(scn: Scenario, executor=None, *, agents=None, qp_backend=None) -> ADMMSolver:  # type: ignore[no-untyped-def]
+    """The solver ``make_solver`` builds for ``scn``; ``qp_backend`` makes its agents' QP solver
+    and ``agents(factory)``, if given, the agents from the factory ``make_solver`` would use."""
+    s, bodies, config = OCPSettings.from_scenario(scn), planner_bodies(scn), admm_config(scn)
+    factory = LocalAgentFactory.for_config(s, bodies, config, qp_backend=qp_backend)
+    made = factory if agents is None else agents(factory)
+    return ADMMSolver(s, scn.num_agents, bodies, config, executor, agents=made)
+
+
+def record_ipopt_problems(scn: Scenario, steps: int) -> list[dict]:
+    """Every local problem with copies the IPOPT path solves in the first ``steps`` MPC steps of
+    ``scn`` (hard pair rows; rescue problems left out); see :class:`RecordingLadder`."""
+    recorded: list[dict] = []
+    scn = scn.with_updates(**{"stop.max_steps": steps, "solver.local": "ipopt"})
+    solver = admm_solver(scn, agents=lambda factory: RecordingAgents(factory, recorded))
+    try:
+        simulate(scn, solver=solver)
+    finally:
+        solver.close()
     return recorded
 
 
@@ -187,14 +225,14 @@ def separation_active(answer, problem: dict) -> bool:  # type: ignore[no-untyped
     return bool(min(gaps) <= s.d_min + 1e-6)
 
 
-def test_recorded_local_problems_reach_the_ipopt_optimum(qp_runs, monkeypatch):
+@pytest.mark.loop
+def test_recorded_local_problems_reach_the_ipopt_optimum(qp_runs):
     with np.load(PINNED) as pinned:
         mid_swap = pinned["paper-2d/states"][55]  # mid-swap: the four agents meet near the centre
-    problems = record_ipopt_problems(start_from(builtin_scenario("paper-2d"), mid_swap), 1, monkeypatch)
+    problems = record_ipopt_problems(start_from(builtin_scenario("paper-2d"), mid_swap), 1)
     scn, result, _ = qp_runs["random-8"]
     crowded = result.states[crowded_step(result.states, scn)]
-    problems += record_ipopt_problems(start_from(builtin_scenario("random", agents=8, dim=3, seed=0), crowded),
-                                      1, monkeypatch)
+    problems += record_ipopt_problems(start_from(builtin_scenario("random", agents=8, dim=3, seed=0), crowded), 1)
     tally = compare(problems)
     assert tally["problems"] >= 100 and tally["active"] >= 20, tally  # the separations bind: not vacuous
     assert tally["converged"] >= 0.9 * tally["problems"], tally
@@ -242,6 +280,7 @@ def pair_closed_loop(states: np.ndarray, steps: int) -> tuple[np.ndarray, int, T
     return np.array(positions), fell, tally
 
 
+@pytest.mark.loop
 def test_the_rescue_on_the_qp_path_gets_a_pair_out_and_apart():
     """Every hard problem infeasible (a pair inside each other's box; a head-on pair too fast to
     brake): the QP calls fail, IPOPT fails too (counted), the soft QP rescue flies the pair out."""
@@ -294,13 +333,12 @@ def test_a_failed_qp_call_is_answered_by_ipopt_and_the_next_starts_from_it():
     np.testing.assert_allclose(back.x["X"], first.x["X"], atol=1e-4)
 
 
-def test_the_agents_count_fallbacks_in_closed_loop(monkeypatch):
+def test_the_agents_count_fallbacks_in_closed_loop():
     """With a QP path that fails every call, IPOPT answers every local step and the agents count
     each one; the run goes on as on the IPOPT path."""
-    monkeypatch.setattr(admm, "QPLocalLadder", lambda *a, **k: QPLocalLadder(*a, **k, backend=RefusingBackend))
     scn = qp_scenario("wall-door").with_updates(**{"stop.max_steps": 30})
     tally = TallyExecutor()
-    result = simulate(scn, executor=tally)
+    result = simulate(scn, solver=admm_solver(scn, tally, qp_backend=RefusingBackend))
     assert tally.requests > 0 and tally.fallbacks >= 0.5 * tally.requests  # reused answers call no solver
     assert result.summary["solver_failures"] == 0 and body_overlaps(result.states, scn) == 0
 

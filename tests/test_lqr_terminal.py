@@ -71,6 +71,26 @@ def test_weights_without_a_stabilising_solution_are_named():
         lqr_terminal_weight(DoubleIntegrator(2, 0.1), np.zeros((4, 4)), np.eye(2))
 
 
+class _Matrices:
+    """The part of an agent model the Riccati helpers read: its name and its linear matrices."""
+
+    def __init__(self, matrices: tuple[np.ndarray, np.ndarray] | None) -> None:
+        self.name, self.matrices = "stub", matrices
+
+    def linear_matrices(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return self.matrices
+
+
+def test_any_linear_model_gets_its_own_riccati_weight_and_a_nonlinear_one_none():
+    A, B = np.eye(2), 0.1 * np.eye(2)  # a single integrator: p_{k+1} = p_k + dt u_k
+    P = lqr_terminal_weight(_Matrices((A, B)), np.eye(2), np.eye(2))  # type: ignore[arg-type]
+    gain = np.linalg.solve(np.eye(2) + B.T @ P @ B, B.T @ P @ A)
+    assert np.max(np.abs(A.T @ P @ A - A.T @ P @ B @ gain + np.eye(2) - P)) <= 1e-9
+    assert np.allclose(P, P[0, 0] * np.eye(2))  # isotropic weights, isotropic cost-to-go
+    with pytest.raises(ValueError, match="not linear"):
+        lqr_terminal_weight(_Matrices(None), np.eye(2), np.eye(2))  # type: ignore[arg-type]
+
+
 # ------------------------------------------------------------------------ the scenario field
 @pytest.mark.parametrize("method", ["euler", "zoh"])
 def test_scenario_matrix_is_the_riccati_solution_of_its_own_dynamics(method):

@@ -120,6 +120,7 @@ def test_a_mujoco_block_takes_defaults_and_round_trips():
     assert scenario_from_dict(yaml.safe_load(yaml.safe_dump(scn.model_dump()))) == scn
 
 
+@pytest.mark.loop
 def test_the_command_line_runs_a_mujoco_plant(tmp_path):
     scenario = tmp_path / "swap.yaml"
     scenario.write_text(yaml.safe_dump({

@@ -12,6 +12,8 @@ import pytest
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.loop import simulate
 
+pytestmark = pytest.mark.loop  # four whole runs
+
 PINNED = Path(__file__).parent / "data" / "pinned-trajectories.npz"
 CASES = {"paper-2d": ("paper-2d", {}), "paper-3d": ("paper-3d", {}), "wall-door": ("wall-door", {}),
          "random-16": ("random", {"agents": 16, "dim": 3, "seed": 0})}

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -137,6 +138,7 @@ def test_a_pair_at_rest_gets_a_plane_and_is_coupled_once_its_plans_break_it():
     solver.close()
 
 
+@pytest.mark.loop
 def test_closed_loop_with_planes_is_collision_free_and_uses_them():
     """Random 3D swarm with planes: planes do carry pairs, no collision recounted from the saved
     trajectory, every solve succeeds."""

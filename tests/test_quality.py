@@ -140,7 +140,7 @@ def lone_scenario(**weights) -> dict:
 def test_the_summary_holds_the_quality_keys_and_the_folder_recomputes_them(tmp_path):
     scn = scenario_from_dict({**lone_scenario(), "agents": [{"start": [-1.5, -1.5], "goal": [1.5, 1.5]},
                                                           {"start": [1.5, -1.5], "goal": [-1.5, 1.5]}],
-                              "stop": {"max_steps": 60}})
+                              "stop": {"max_steps": 20}})
     result = simulate(scn)
     summary = result.summary
     assert [t is not None for t in summary["time_to_goal_s"]] == summary["reached"]

@@ -70,6 +70,7 @@ def _run(env: dict, out: Path, *args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.loop
 def test_a_stock_head_node_is_joined_and_plans_match_serial(head, tmp_path):
     env, port = head
     joined = _run(env, tmp_path / "ray", "--executor", "ray", "--address", f"127.0.0.1:{port}")

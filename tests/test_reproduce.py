@@ -100,6 +100,7 @@ def assert_cell(cell: str, expected: Any, where: str) -> None:
         assert abs(value - float(expected)) <= 0.5 * 10.0**-decimals + 1e-9, f"{where}: {cell} vs {expected}"
 
 
+@pytest.mark.loop
 def test_every_figure_and_animation_is_written(quick: Path) -> None:
     for name in FIGURES:
         data = (quick / name).read_bytes()
@@ -112,6 +113,7 @@ def test_every_figure_and_animation_is_written(quick: Path) -> None:
             assert (quick / target).exists(), f"report.md links a missing file: {target}"
 
 
+@pytest.mark.loop
 def test_every_run_folder_is_complete_and_in_the_report(quick: Path) -> None:
     manifest = json.loads((quick / "reproduce.json").read_text())
     report = (quick / "report.md").read_text()
@@ -127,6 +129,7 @@ def test_every_run_folder_is_complete_and_in_the_report(quick: Path) -> None:
     assert methods == {"admm", "centralized"}
 
 
+@pytest.mark.loop
 def test_report_has_every_section_and_table(quick: Path) -> None:
     report = (quick / "report.md").read_text()
     for section in SECTIONS:
@@ -143,6 +146,7 @@ def test_report_has_every_section_and_table(quick: Path) -> None:
         assert verdict in report
 
 
+@pytest.mark.loop
 def test_every_number_in_the_report_matches_its_run_folder(quick: Path) -> None:
     checked = 0
     for headers, rows in tables((quick / "report.md").read_text()):
@@ -171,6 +175,7 @@ def test_every_number_in_the_report_matches_its_run_folder(quick: Path) -> None:
     assert checked > 300
 
 
+@pytest.mark.loop
 def test_plot_and_animate_work_on_real_2d_and_3d_run_folders(quick: Path, tmp_path: Path) -> None:
     for dim in ("2d", "3d"):
         run = tmp_path / dim

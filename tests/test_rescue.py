@@ -8,6 +8,7 @@ recomputed from the applied states."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -56,6 +57,7 @@ def inf_gaps(positions: np.ndarray) -> np.ndarray:
     return np.max(np.abs(positions[:, 0] - positions[:, 1]), axis=1)
 
 
+@pytest.mark.loop
 def test_a_pair_inside_each_others_box_gets_out():
     inside = np.array([[0.0, 0.0, 0.0, 0.0], [0.2, 0.05, 0.0, 0.0]])  # 0.2 m apart, delta 0.3
     positions, fell = closed_loop(inside, 6, rescue=True)
@@ -66,6 +68,7 @@ def test_a_pair_inside_each_others_box_gets_out():
     assert fell_before == 12 and np.allclose(inf_gaps(stuck), 0.2, atol=1e-6)  # for good, before
 
 
+@pytest.mark.loop
 def test_two_agents_failing_together_swerve_instead_of_braking_into_each_other():
     # head-on at 1.5 m/s each, 2.2 m apart: braking alone (1 m/s^2) cannot stop them in time,
     # so each one's hard problem against the other's braking plan is infeasible

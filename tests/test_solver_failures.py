@@ -4,7 +4,6 @@ failures are counted in summary.json and in the per-step record (steps.npz)."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -13,10 +12,12 @@ import pytest
 from conftest import load_folder, recount_collisions
 from swarmpc.config import scenario_from_dict
 from swarmpc.formulation.nlp import NLPSolution
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.simulation.controller import admm_config
+from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.simulation.loop import make_solver, simulate
 from swarmpc.simulation.results import write_run
-from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.solvers.executors import SerialExecutor
+from swarmpc.solvers.admm import ADMMSolver, LocalAgent, LocalAgentFactory
 
 # three agents whose straight paths cross near the origin within a few steps of each other
 CROSSING = {
@@ -38,50 +39,57 @@ CROSSING = {
 FAILING = {(3, 0), (4, 0), (12, 0), (13, 0), (14, 0), (12, 1), (15, 2), (16, 2), (20, 1), (21, 0)}
 
 
-class _FailingNLP:
-    """Solves for real, then reports failure: the agent must not use the answer."""
+class _FlakyLadder:
+    """An agent's ladder that, while ``failing``, solves for real, then reports failure: the agent
+    must not use the answer."""
 
     def __init__(self, inner: Any) -> None:
-        self._inner = inner
+        self.inner = inner
+        self.failing = False
 
     def solve(self, *args: Any, **kwargs: Any) -> NLPSolution:
-        solution = self._inner.solve(*args, **kwargs)
+        solution = self.inner.solve(*args, **kwargs)
+        if not self.failing:
+            return solution
         return dataclasses.replace(solution, success=False, status="Infeasible_Problem_Detected")
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._inner, name)
+    def verified(self, *args: Any, **kwargs: Any) -> NLPSolution | None:
+        return self.inner.verified(*args, **kwargs)
 
 
 class _FlakyAgent:
     """A real LocalAgent whose solver fails on the chosen MPC steps."""
 
-    def __init__(self, inner: Any, failing: set[tuple[int, int]]) -> None:
-        self.inner = inner
+    def __init__(self, agent: LocalAgent, failing: set[tuple[int, int]]) -> None:
+        self.ladder = _FlakyLadder(agent.nlp)
+        self.inner = LocalAgent(agent.agent, agent.settings, self.ladder, agent.dynamic_copies, agent.seed_duals,
+                                agent.rescue)
         self.failing = failing
         self.step = -1
 
     def solve(self, request: Any) -> Any:
         if request.new_step:
             self.step += 1
-        if (self.step, request.agent) not in self.failing:
-            return self.inner.solve(request)
-        real = self.inner.nlp
-        self.inner.nlp = _FailingNLP(real)
-        try:
-            return self.inner.solve(request)
-        finally:
-            self.inner.nlp = real
+        self.ladder.failing = (self.step, request.agent) in self.failing
+        return self.inner.solve(request)
 
 
-class FlakyExecutor(SerialExecutor):
-    """The serial executor with fault injection on chosen (step, agent) pairs."""
+class FlakyAgents:
+    """The agents ``factory`` makes, with fault injection on chosen (step, agent) pairs."""
 
-    def __init__(self, failing: set[tuple[int, int]]) -> None:
-        super().__init__()
+    def __init__(self, factory: LocalAgentFactory, failing: set[tuple[int, int]]) -> None:
+        self.factory = factory
         self.failing = failing
 
-    def start(self, factory: Any, agent_ids: Sequence[int]) -> None:
-        self._agents = {i: _FlakyAgent(factory(i), self.failing) for i in agent_ids}
+    def __call__(self, agent: int) -> _FlakyAgent:
+        return _FlakyAgent(self.factory(agent), self.failing)
+
+
+def flaky_solver(scn: Any, failing: set[tuple[int, int]]) -> ADMMSolver:
+    """The scenario's ADMM solver (as ``make_solver`` builds it) with fault injection."""
+    s, bodies, config = OCPSettings.from_scenario(scn), planner_bodies(scn), admm_config(scn)
+    agents = FlakyAgents(LocalAgentFactory.for_config(s, bodies, config), failing)
+    return ADMMSolver(s, scn.num_agents, bodies, config, agents=agents)
 
 
 def _check_folder(folder, expect_failures: bool) -> tuple[dict, dict]:
@@ -99,9 +107,14 @@ def _check_folder(folder, expect_failures: bool) -> tuple[dict, dict]:
     return summary, {"failures": failures, "fallback": fallback, **arrays}
 
 
+@pytest.mark.loop
 def test_admm_local_failures_fall_back_and_the_run_goes_on(tmp_path):
     scn = scenario_from_dict(CROSSING)
-    result = simulate(scn, executor=FlakyExecutor(set(FAILING)))
+    solver = flaky_solver(scn, set(FAILING))
+    try:
+        result = simulate(scn, solver=solver)
+    finally:
+        solver.close()
     folder = write_run(result, tmp_path / "admm")
     summary, arrays = _check_folder(folder, expect_failures=True)
     assert summary["all_reached"]
@@ -198,6 +211,9 @@ def test_admm_capped_before_consensus_is_repaired_and_stays_safe(tmp_path):
 
     unrepaired = ADMMSolver(OCPSettings.from_scenario(scn), scn.num_agents, planner_delta(scn),
                             ADMMConfig(rho=scn.solver.rho, max_iter=2, tol=scn.solver.tol, repair=False))
-    without = simulate(scn, solver=unrepaired)
+    try:
+        without = simulate(scn, solver=unrepaired)
+    finally:
+        unrepaired.close()
     assert without.summary["admm_repairs"] == 0
     assert recount_collisions(without.states, scn.delta_vector)[0] > 0

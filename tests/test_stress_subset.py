@@ -9,10 +9,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from conftest import load_folder, recount_collisions
 from swarmpc.config import load_scenario
 from swarmpc.model.geometry import obstacle_penetration
+
+pytestmark = pytest.mark.loop  # twenty whole runs
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 

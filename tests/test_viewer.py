@@ -604,7 +604,7 @@ return [fl.xaxis._offset + fl.xaxis.l2p(t.x[0]) - r.width / 2,
 
 
 @pytest.mark.browser
-@pytest.mark.parametrize("key,agents", [("2d", 3), ("3d", 4)])
+@pytest.mark.parametrize("key,agents", [("2d", 3), pytest.param("3d", 4, marks=pytest.mark.loop)])
 def test_page_in_chromium(driver, pages, key, agents, tmp_path):
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By

@@ -12,7 +12,7 @@ from swarmpc._interrupts import INTERRUPTED, caused_by_interrupt
 def main() -> None:
     interrupted: list[BaseException] = []
 
-    def note_interrupts(unraisable: "sys.UnraisableHookArgs") -> None:
+    def note_interrupts(unraisable: sys.UnraisableHookArgs) -> None:
         # a Ctrl-C that lands in a callback the import machinery runs (a module lock's weakref
         # callback) is "ignored" with a printed traceback and the import goes on: act on it below
         if isinstance(unraisable.exc_value, KeyboardInterrupt):

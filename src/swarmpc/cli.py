@@ -291,7 +291,7 @@ def _run_and_write(
         target.discard()
         raise
     finally:
-        if executor is not None:  # simulate closes it only when its loop ends normally (idempotent)
+        if executor is not None:  # this function made it, this function closes it (interrupted too)
             executor.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)

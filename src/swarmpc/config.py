@@ -28,7 +28,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_core import PydanticSerializationError
 
-from swarmpc.model.dynamics import DoubleIntegrator, lqr_terminal_weight, riccati_weights_problem
+from swarmpc.model.agent_model import AgentModel, make_model
+from swarmpc.model.dynamics import lqr_terminal_weight, riccati_weights_problem
 
 Number = float
 Matrix = list[list[float]]
@@ -37,7 +38,7 @@ ScalarOrVector = float | list[float]
 
 MAX_FILE_BYTES = 512 * 1024
 """Largest scenario file read (512 KiB): a 1024-agent 3D scenario written out in full is ~0.2 MiB,
-and the pure-Python YAML parser refuses the worst file of this size in a few seconds."""
+and the cap bounds the time the pure-Python YAML parser can spend on a hostile file before refusing it."""
 MAX_YAML_DEPTH = 32
 """Deepest nesting of YAML collections accepted (a scenario needs 5: agents, item, start, ...)."""
 MAX_YAML_NODES = 500_000
@@ -357,6 +358,12 @@ class Agent(_Frozen):
         return value
 
 
+REMOVED_SOLVER_KEYS: typing.Mapping[str, str] = types.MappingProxyType({
+    "component_stop": "it was slower to the goals; docs/lab/admm.md#component-stop",
+})
+"""``solver`` keys that were removed, with why and where their measurement is kept."""
+
+
 class SolverConfig(_Frozen):
     """How each MPC step is solved."""
 
@@ -375,12 +382,6 @@ class SolverConfig(_Frozen):
         default=1.0, gt=0, lt=2,
         description="ADMM over-relaxation alpha: the consensus averages alpha * answer + (1 - alpha) * "
         "previous consensus (1: plain ADMM, as in the paper)",
-    )
-    component_stop: bool = Field(
-        default=False,
-        description="ADMM also stops each connected group of coupled agents once its own residuals meet tol "
-        "(its agents are not solved again in the step while other groups iterate); false: only the "
-        "residuals over all blocks decide",
     )
     plane_margin: float | None = Field(
         default=None, ge=0,
@@ -411,6 +412,16 @@ class SolverConfig(_Frozen):
         "A deadline that binds makes the run depend on the machine's speed. null: no deadline (steps whose "
         "critical path exceeds dt still count in summary.json deadline_misses)",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _removed_keys(cls, data: Any) -> Any:
+        """A removed key is named as removed, not as unknown: a scenario written for it says why."""
+        if isinstance(data, dict):
+            for key, why in REMOVED_SOLVER_KEYS.items():
+                if key in data:
+                    raise ValueError(f"{key}: removed ({why})")
+        return data
 
 
 class StopConfig(_Frozen):
@@ -633,7 +644,7 @@ class DeadlockConfig(_Frozen):
 
 
 class Scenario(_Frozen):
-    """A complete, validated multi-agent scenario (design.md section 8)."""
+    """A complete, validated multi-agent scenario (every key: docs/scenario-reference.md)."""
 
     name: str = Field(
         default="unnamed",
@@ -759,9 +770,14 @@ class Scenario(_Frozen):
     def num_agents(self) -> int:
         return len(self.agents)
 
+    def agent_model(self) -> AgentModel:
+        """The agents' dynamics: the double integrator of this ``dim``, ``dt`` and
+        ``discretization`` (:func:`swarmpc.model.agent_model.make_model`)."""
+        return make_model("double_integrator", self.dim, self.dt, self.discretization)
+
     @property
     def state_dim(self) -> int:
-        return 2 * self.dim
+        return self.agent_model().state_dim
 
     @property
     def delta_vector(self) -> np.ndarray:
@@ -776,13 +792,17 @@ class Scenario(_Frozen):
         return np.array([default if a.body is None else np.broadcast_to(np.asarray(a.body, float), (self.dim,))
                          for a in self.agents])
 
-    def start_states(self) -> np.ndarray:
-        """(M, 2d) start states (zero velocity where only a position is given)."""
-        return np.array([_full_state(a.start, self.dim) for a in self.agents])
+    def start_states(self, model: AgentModel | None = None) -> np.ndarray:
+        """(M, n) start states of ``model`` (default :meth:`agent_model`), at rest where only a
+        position is given."""
+        model = model or self.agent_model()
+        return np.array([_model_state(a.start, self.dim, model) for a in self.agents])
 
-    def goal_states(self) -> np.ndarray:
-        """(M, 2d) goal states (zero velocity where only a position is given)."""
-        return np.array([_full_state(a.goal, self.dim) for a in self.agents])
+    def goal_states(self, model: AgentModel | None = None) -> np.ndarray:
+        """(M, n) goal states of ``model`` (default :meth:`agent_model`), at rest where only a
+        position is given."""
+        model = model or self.agent_model()
+        return np.array([_model_state(a.goal, self.dim, model) for a in self.agents])
 
     def obstacle_halfspaces(self) -> list[tuple[np.ndarray, np.ndarray]]:
         return [ob.halfspaces(self.dim) for ob in self.obstacles]
@@ -791,18 +811,20 @@ class Scenario(_Frozen):
         """Workspace box; without one, the starts' and goals' bounding box padded by 1 m."""
         if self.workspace is not None:
             return np.asarray(self.workspace.lower, float), np.asarray(self.workspace.upper, float)
-        points = np.vstack([self.start_states()[:, : self.dim], self.goal_states()[:, : self.dim]])
+        model = self.agent_model()
+        points = np.vstack([model.position(self.start_states(model)), model.position(self.goal_states(model))])
         return points.min(axis=0) - 1.0, points.max(axis=0) + 1.0
 
-    def matrix(self, which: Literal["Q", "R", "Qf"]) -> np.ndarray:
-        """The weight ``which`` as a matrix: a scalar times identity, a matrix as given, and
-        ``Qf: lqr`` as the Riccati cost-to-go of the agent's double integrator with this ``dt``
-        and ``discretization`` and the Q and R above (:func:`swarmpc.model.dynamics.lqr_terminal_weight`)."""
-        size = self.dim if which == "R" else self.state_dim
+    def matrix(self, which: Literal["Q", "R", "Qf"], model: AgentModel | None = None) -> np.ndarray:
+        """The weight ``which`` for ``model``'s states and inputs (default :meth:`agent_model`): a
+        scalar times identity, a matrix as given, and ``Qf: lqr`` as the Riccati cost-to-go of
+        the model (with this ``dt`` and ``discretization``) and the Q and R above
+        (:func:`swarmpc.model.dynamics.lqr_terminal_weight`)."""
+        model = model or self.agent_model()
+        size = model.input_dim if which == "R" else model.state_dim
         value = getattr(self.weights, which)
         if value == "lqr":
-            model = DoubleIntegrator(self.dim, self.dt, self.discretization)
-            return lqr_terminal_weight(model, self.matrix("Q"), self.matrix("R"))
+            return lqr_terminal_weight(model, self.matrix("Q", model), self.matrix("R", model))
         if isinstance(value, (int, float)):
             return float(value) * np.eye(size)
         return np.asarray(value, float)
@@ -826,6 +848,13 @@ def _full_state(vector: list[float], dim: int) -> np.ndarray:
     if values.size == dim:
         return np.concatenate([values, np.zeros(dim)])
     return values
+
+
+def _model_state(vector: list[float], dim: int, model: AgentModel) -> np.ndarray:
+    """A start or goal as a state of ``model``: a position (d values) at rest, or a position and
+    a velocity (2d values)."""
+    values = np.asarray(vector, float)
+    return model.state_at(values[:dim], values[dim:] if values.size > dim else None)
 
 
 def estimated_run_bytes(scn: Scenario) -> tuple[int, int]:

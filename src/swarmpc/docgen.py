@@ -283,6 +283,7 @@ def cli_reference() -> str:
     from swarmpc.cli import app
 
     group = typer.main.get_command(app)
+    assert isinstance(group, typer.core.TyperGroup)  # an app of several commands is a group
     root = group.make_context("swarmpc", [], resilient_parsing=True)
     lines = [
         "# Command-line reference",
@@ -343,7 +344,8 @@ entry is there:
 
 
 def _condition_table() -> list[str]:
-    return ["| present | meaning |", "|---|---|", *(f"| `{code}` | {_cell(text)} |" for code, text in CONDITIONS.items())]
+    rows = (f"| `{code}` | {_cell(text)} |" for code, text in CONDITIONS.items())
+    return ["| present | meaning |", "|---|---|", *rows]
 
 
 def _file_tables() -> list[str]:
@@ -351,7 +353,8 @@ def _file_tables() -> list[str]:
     lines = ["## Files", "", "| file | present | content |", "|---|---|---|"]
     lines += [f"| {', '.join(f'`{n}`' for n in f.name.split(', '))} | `{f.when}` | {_cell(f.meaning)} |" for f in FILES]
     lines += ["", "## `summary.json`", "",
-              "A JSON object; dotted keys are nested (`step_time_ms.median`). Non-finite numbers are written as `null`.",
+              "A JSON object; dotted keys are nested (`step_time_ms.median`). "
+              "Non-finite numbers are written as `null`.",
               "", "| key | type | units | present | meaning |", "|---|---|---|---|---|"]
     lines += [f"| `{k.key}` | {_cell(k.type)} | {k.units} | `{k.when}` | {_cell(k.meaning)} |" for k in SUMMARY_KEYS]
     for archive in dict.fromkeys(a.file for a in ARRAYS):

@@ -151,7 +151,10 @@ MCAP_TOPICS: tuple[TopicDoc, ...] = (
         "workspace outline (`workspace`) and each agent's goal (`goal/<i>`: a sphere of radius "
         "`stop.goal_tolerance` inside the outline of the agent's body).",
     ),
-    TopicDoc("/paths", "foxglove.SceneUpdate", False, "Each agent's whole closed-loop path (`path/<i>`), a line strip."),
+    TopicDoc(
+        "/paths", "foxglove.SceneUpdate", False,
+        "Each agent's whole closed-loop path (`path/<i>`), a line strip.",
+    ),
     TopicDoc(
         "/agents", "foxglove.SceneUpdate", True,
         "Each agent's body at `t[k]` (`agent/<i>`): a box of the body's half-size per axis (Δ/2 unless "
@@ -272,7 +275,7 @@ def _as_text(write_text: Callable[[IO[str]], None]) -> Callable[[IO[bytes]], Non
     """A binary-stream writer that runs ``write_text`` on a UTF-8 view of the stream."""
 
     def write(stream: IO[bytes]) -> None:
-        text = io.TextIOWrapper(stream, encoding="utf-8", newline="")  # type: ignore[type-var]
+        text = io.TextIOWrapper(stream, encoding="utf-8", newline="")
         try:
             write_text(text)
             text.flush()
@@ -533,8 +536,9 @@ class _Scene:
             size = _slab_or_cube(2 * np.asarray(obstacle.box.half_size, float))
             cube = CubePrimitive(pose=_pose(obstacle.box.center), size=size, color=_color(GREY, 0.8))
             return self._entity(f"obstacle/{n}", k, cubes=[cube])
-        assert obstacle.polytope is not None
-        vertices = self._polytope_vertices(np.asarray(obstacle.polytope.G, float), np.asarray(obstacle.polytope.g, float))
+        polytope = obstacle.polytope
+        assert polytope is not None
+        vertices = self._polytope_vertices(np.asarray(polytope.G, float), np.asarray(polytope.g, float))
         if len(vertices) <= self.run.dim:
             return self._entity(f"obstacle/{n}", k)  # empty or flat within the scene: nothing to draw
         mesh = TriangleListPrimitive(pose=_pose(np.zeros(3)), points=[_point(p) for p in _triangles(vertices)],

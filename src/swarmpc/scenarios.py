@@ -98,8 +98,8 @@ def circle(agents: int = 8, dim: int = 2, radius: float | None = None, delta: fl
 
 SWARM_SOLVER = {"tol": 5e-3}
 """ADMM settings of the swarm families (``random``, ``spread``): a consensus tolerance of 5 mm
-instead of 1 mm. In a dense swarm the stop waits for the slowest group of coupled agents, and a
-looser tolerance roughly halves the ADMM iterations per step at about the same time to the goals.
+instead of 1 mm. In a dense swarm the stop waits for the slowest group of coupled agents, so a
+looser tolerance saves the iterations spent polishing its consensus, which barely move the agents.
 Safety does not rest on the tolerance: the stop also requires the flown plans of coupled agents to
 keep d_min / 2 apart. The paper's scenarios keep 1 mm, so the paper reproduction is unchanged.
 Evidence: docs/lab/admm.md, "Consensus tolerance and the stop's check on the flown plans"."""

@@ -94,7 +94,7 @@ def convergence_figure(
         ax_p = fig.add_subplot(grid[r, 0])
         ax_d = fig.add_subplot(grid[r, 1], sharey=ax_p)
         for ax, values, name in ((ax_p, admm.primal, "primal"), (ax_d, admm.dual, "dual")):
-            for step, color in zip(chosen, palette_rgba):
+            for step, color in zip(chosen, palette_rgba, strict=True):
                 row = np.where(values[step] > 0, values[step], np.nan)
                 keep = np.isfinite(row)
                 iters = np.arange(1, row.size + 1)
@@ -111,7 +111,7 @@ def convergence_figure(
         ax_it = fig.add_subplot(grid[r, 2])
         total = admm.iterations.size
         ax_it.bar(np.arange(total), admm.iterations, width=1.0, color="0.7")
-        for step, color in zip(chosen, palette_rgba):
+        for step, color in zip(chosen, palette_rgba, strict=True):
             ax_it.bar([step], [admm.iterations[step]], width=1.0, color=color)
         ax_it.set_xlabel("MPC step")
         ax_it.set_ylabel("ADMM iterations")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import datetime as _dt
 import os
 from collections.abc import Callable, Sequence
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -131,7 +132,7 @@ def delta_verdict(records: Sequence[RunRecord]) -> str:
                 costs = [float(r.summary["cost"]) for r in series]
                 steps = [int(r.summary["steps"]) for r in series]
                 rising = costs[-1] > costs[0]
-                monotone = all(b >= a for a, b in zip(costs, costs[1:]))
+                monotone = all(b >= a for a, b in pairwise(costs))
                 total += 1
                 agree += int(rising)
                 deltas = ", ".join(f"{r.spec.delta:g}" for r in series)
@@ -268,7 +269,7 @@ def render_report(out: Path, plan: ReproducePlan, records: Sequence[RunRecord], 
         "# Reproduction of the paper's experiments",
         "",
         f"Written by `swarmpc reproduce{' --quick' if plan.quick else ''} --jobs {manifest['jobs']}` on "
-        f"{manifest.get('started_utc') or f'{_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M}'} UTC; "
+        f"{manifest.get('started_utc') or f'{_dt.datetime.now(_dt.UTC):%Y-%m-%d %H:%M}'} UTC; "
         f"mode: {mode}. "
         f"{len(manifest['runs'])} runs ({len(failed)} failed) in {manifest['runs_wall_time_s']:.0f} s, "
         f"{manifest['wall_time_s']:.0f} s with figures, {manifest['jobs']} parallel jobs on "

@@ -28,52 +28,31 @@ from swarmpc.batch import Task, error_line, run_batch
 from swarmpc.config import scenario_to_yaml
 from swarmpc.experiments.figures import write_figures
 from swarmpc.experiments.plan import (
-    FORMS as FORMS,
-)
-from swarmpc.experiments.plan import (
-    GUESS_DELTA as GUESS_DELTA,
-)
-from swarmpc.experiments.plan import (
-    GUESSES as GUESSES,
-)
-from swarmpc.experiments.plan import (
-    MANIFEST as MANIFEST,
-)
-from swarmpc.experiments.plan import (
-    PAPER_DELTAS as PAPER_DELTAS,
-)
-from swarmpc.experiments.plan import (
-    REPORT as REPORT,
-)
-from swarmpc.experiments.plan import (
-    RUNS_DIR as RUNS_DIR,
-)
-from swarmpc.experiments.plan import (
-    SCENARIOS as SCENARIOS,
-)
-from swarmpc.experiments.plan import (
-    SEED as SEED,
-)
-from swarmpc.experiments.plan import (
-    Log as Log,
-)
-from swarmpc.experiments.plan import (
-    ReproducePlan as ReproducePlan,
-)
-from swarmpc.experiments.plan import (
-    RunOutcome as RunOutcome,
-)
-from swarmpc.experiments.plan import (
-    RunRecord as RunRecord,
-)
-from swarmpc.experiments.plan import (
-    RunSpec as RunSpec,
-)
-from swarmpc.experiments.plan import (
-    plan_runs as plan_runs,
+    FORMS,
+    GUESS_DELTA,
+    GUESSES,
+    MANIFEST,
+    PAPER_DELTAS,
+    REPORT,
+    RUNS_DIR,
+    SCENARIOS,
+    SEED,
+    Log,
+    ReproducePlan,
+    RunOutcome,
+    RunRecord,
+    RunSpec,
+    plan_runs,
 )
 from swarmpc.experiments.report import write_report
 from swarmpc.simulation.rundata import SUMMARY_FILE, read_summary
+
+# the set's definition (experiments/plan.py) is public here too, beside the functions that run it
+__all__ = [
+    "FORMS", "GUESS_DELTA", "GUESSES", "MANIFEST", "PAPER_DELTAS", "REPORT", "RUNS_DIR", "SCENARIOS", "SEED",
+    "Log", "ReproducePlan", "RunOutcome", "RunRecord", "RunSpec", "plan_runs",
+    "collect", "default_jobs", "execute", "export_doc_figures", "load_set", "reproduce", "run_one",
+]
 
 
 def run_one(spec: RunSpec, folder: str) -> RunOutcome:

@@ -6,13 +6,19 @@ Collision avoidance follows OBCA (Zhang, Liniger, Borrelli 2017). Against a poly
 * hard:  (G p - g)^T lambda >= d_min,        ||G^T lambda||_2 <= 1;
 * soft:  (G p - g)^T lambda >= d_min - alpha, ||G^T lambda||_2 = 1, alpha >= 0, kappa*alpha in cost.
 
-Two traps of the paper's statement are designed around (design.md section 9):
+Two traps of the paper's statement are designed around (docs/formulation.md, "The traps"):
 
 * d_min = 0 in the hard form excludes nothing (lambda = 0 satisfies it). The hard form here always
   has d_min > 0 (validated; default 0.05 m).
 * With Euler steps p(1) = p(0) + dt v(0) is fixed by the measured state, so a constraint at k = 1
-  has no free variable. Collision constraints start at k = 2 for Euler (k = 1 was enforced as k = 2
-  of the previous solve) and at k = 1 for the exact zero-order hold, where p(1) depends on u(0).
+  has no free variable. Collision constraints start at the agent model's first step whose position
+  depends on the inputs (:attr:`~swarmpc.model.agent_model.AgentModel.first_constrained_step`):
+  k = 2 for Euler (k = 1 was enforced as k = 2 of the previous solve) and k = 1 for the exact
+  zero-order hold, where p(1) depends on u(0).
+
+The agents' dynamics enter only through the settings' :class:`~swarmpc.model.agent_model.AgentModel`
+(``OCPSettings.model``): its state and input sizes, its CasADi dynamics and speed, its input box
+and the state rows that hold the position.
 
 Agents have bodies (axis-aligned boxes of half-size b_i). A pair keeps its centres' offset out of
 the box of half-size Delta_ij = b_i + b_j; an obstacle keeps the whole body out because each
@@ -24,20 +30,27 @@ each pair's Delta, consensus targets, multipliers, rho) is a parameter.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
 from swarmpc.config import Scenario
 from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder
-from swarmpc.model.dynamics import discrete_matrices
+from swarmpc.model.agent_model import AgentModel, make_model
 from swarmpc.model.geometry import inflate_polytope
 
 
 @dataclass(frozen=True)
 class OCPSettings:
-    """Everything that fixes the shape and constants of an agent's OCP."""
+    """Everything that fixes the shape and constants of an agent's OCP.
+
+    The agent model is named (``model_name``, ``model_params``) and built from ``dim``, ``dt`` and
+    ``discretization`` (:func:`swarmpc.model.agent_model.make_model`) into :attr:`model`, so a
+    copy with another ``dt`` or ``discretization`` (``dataclasses.replace``) carries the model
+    that goes with it. ``Q``, ``Qf`` are (n, n) and ``R`` (m, m) for the model's states and inputs.
+    """
 
     dim: int
     horizon: int
@@ -54,9 +67,21 @@ class OCPSettings:
     accel: np.ndarray | None
     speed: float | None
     obstacles: tuple[tuple[np.ndarray, np.ndarray], ...]
+    model_name: str = "double_integrator"
+    model_params: tuple[tuple[str, Any], ...] = ()
+    """Keyword arguments of the model's factory, as (name, value) pairs."""
+    model: AgentModel = field(init=False, repr=False, compare=False)
+    """The agent's dynamics (built from the fields above)."""
+
+    def __post_init__(self) -> None:
+        model = make_model(self.model_name, self.dim, self.dt, self.discretization, **dict(self.model_params))
+        object.__setattr__(self, "model", model)
 
     @classmethod
-    def from_scenario(cls, scn: Scenario) -> OCPSettings:
+    def from_scenario(cls, scn: Scenario, model: str = "double_integrator", **params: Any) -> OCPSettings:
+        """The settings of the scenario's agents with the registered model ``model`` (``params``
+        to its factory); the weights are sized for that model's states and inputs."""
+        agent = make_model(model, scn.dim, scn.dt, scn.discretization, **params)
         accel = None
         if scn.limits.accel is not None:
             accel = np.broadcast_to(np.asarray(scn.limits.accel, float), (scn.dim,)).copy()
@@ -68,9 +93,9 @@ class OCPSettings:
             horizon=scn.horizon,
             dt=scn.dt,
             discretization=scn.discretization,
-            Q=scn.matrix("Q"),
-            R=scn.matrix("R"),
-            Qf=scn.matrix("Qf"),
+            Q=scn.matrix("Q", agent),
+            R=scn.matrix("R", agent),
+            Qf=scn.matrix("Qf", agent),
             collision=scn.collision,
             d_min=scn.d_min,
             kappa=scn.kappa,
@@ -79,6 +104,8 @@ class OCPSettings:
             accel=accel,
             speed=scn.limits.speed,
             obstacles=tuple(scn.obstacle_halfspaces()),
+            model_name=model,
+            model_params=tuple(sorted(params.items())),
         )
 
     def for_body(self, half_size: np.ndarray) -> OCPSettings:
@@ -90,8 +117,9 @@ class OCPSettings:
 
     @property
     def first_constrained_step(self) -> int:
-        """First horizon step with a free position: 2 for Euler, 1 for zero-order hold."""
-        return 2 if self.discretization == "euler" else 1
+        """First horizon step with a free position (the model's): 2 for the Euler double
+        integrator, 1 for the zero-order hold."""
+        return self.model.first_constrained_step
 
     @property
     def num_constrained(self) -> int:
@@ -127,14 +155,15 @@ LOCAL_IPOPT_OPTIONS = {
     "calc_lam_p": False,
 }
 """IPOPT options of the agents' local ADMM problems: without MUMPS's scaling of the KKT matrix
-and without the parameter multipliers nobody reads. On local problems recorded from random 3D
-M = 64 (300 warm-started solves, 8 copies median, interleaved) the median solve fell 5.44 ->
-4.68 ms at the same solutions (largest difference 7.5e-15; docs/admm.md). A local solve of one
-or two IPOPT iterations is mostly the linear solver's fixed cost, so this is what is left to cut."""
+and without the parameter multipliers nobody reads. A warm-started local solve takes one or two
+IPOPT iterations, so its time is mostly the linear solver's fixed cost, and these options cut
+that cost without changing the solutions (the centralised problem, large and badly scaled, keeps
+the scaling in :data:`IPOPT_OPTIONS`). Evidence: docs/lab/admm.md, "Local IPOPT options"."""
 
 
 def quadratic_cost(X: ca.SX, U: ca.SX, goal: ca.SX, s: OCPSettings) -> ca.SX:
-    """Paper eq. (3): sum_k (s_k - s_g)' Q (s_k - s_g) + u_k' R u_k + (s_N - s_g)' Qf (s_N - s_g)."""
+    """Paper eq. (3): sum_k (s_k - s_g)' Q (s_k - s_g) + u_k' R u_k + (s_N - s_g)' Qf (s_N - s_g)
+    over the model's states X (n, N+1) and inputs U (m, N)."""
     cost = ca.SX(0)
     for k in range(s.horizon):
         err = X[:, k] - goal
@@ -144,25 +173,25 @@ def quadratic_cost(X: ca.SX, U: ca.SX, goal: ca.SX, s: OCPSettings) -> ca.SX:
 
 
 def add_trajectory(builder: ProblemBuilder, tag: str, s: OCPSettings) -> tuple[ca.SX, ca.SX]:
-    """A dynamically feasible trajectory: parameter ``x0{tag}``, variables ``X{tag}`` (2d, N+1) and
-    ``U{tag}`` (d, N) with the dynamics, workspace, acceleration and speed limits; returns (X, U)."""
-    d, N = s.dim, s.horizon
-    A, B = discrete_matrices(d, s.dt, s.discretization)  # type: ignore[arg-type]
-    lbx = np.full((2 * d, N + 1), -np.inf)
-    ubx = np.full((2 * d, N + 1), np.inf)
+    """A dynamically feasible trajectory: parameter ``x0{tag}``, variables ``X{tag}`` (n, N+1) and
+    ``U{tag}`` (m, N) of the settings' model with its dynamics, the workspace (on the position
+    rows), the input box and the speed limit; returns (X, U)."""
+    model, N = s.model, s.horizon
+    n, rows = model.state_dim, model.position_rows
+    lbx = np.full((n, N + 1), -np.inf)
+    ubx = np.full((n, N + 1), np.inf)
     if s.lower is not None and s.upper is not None:
         first = s.first_constrained_step
-        lbx[:d, first:] = s.lower[:, None]
-        ubx[:d, first:] = s.upper[:, None]
-    amax = s.accel if s.accel is not None else np.full(d, np.inf)
-    x0 = builder.parameter(f"x0{tag}", 2 * d)
-    X = builder.variable(f"X{tag}", 2 * d, N + 1, lbx, ubx)
-    U = builder.variable(f"U{tag}", d, N, -amax[:, None], amax[:, None])
+        lbx[rows, first:] = s.lower[:, None]
+        ubx[rows, first:] = s.upper[:, None]
+    lower, upper = model.input_bounds(s.accel, s.speed)
+    x0 = builder.parameter(f"x0{tag}", n)
+    X = builder.variable(f"X{tag}", n, N + 1, lbx, ubx)
+    U = builder.variable(f"U{tag}", model.input_dim, N, lower[:, None], upper[:, None])
     builder.constrain(f"init{tag}", X[:, 0] - x0, 0.0, 0.0)
-    builder.constrain(f"dyn{tag}", X[:, 1:] - (ca.mtimes(A, X[:, :-1]) + ca.mtimes(B, U)), 0.0, 0.0)
+    builder.constrain(f"dyn{tag}", X[:, 1:] - model.casadi_dynamics(X, U), 0.0, 0.0)
     if s.speed is not None:
-        speed_sq = ca.sum1(X[d:, 1:] ** 2)
-        builder.constrain(f"speed{tag}", speed_sq, -np.inf, s.speed**2)
+        builder.constrain(f"speed{tag}", model.casadi_speed_sq(X, U), -np.inf, s.speed**2)
     return X, U
 
 
@@ -170,10 +199,10 @@ def add_agent(builder: ProblemBuilder, tag: str, s: OCPSettings) -> tuple[ca.SX,
     """One agent: its trajectory (:func:`add_trajectory`), parameter ``goal{tag}``, its quadratic
     cost and OBCA against every static obstacle; returns (X, U)."""
     X, U = add_trajectory(builder, tag, s)
-    goal = builder.parameter(f"goal{tag}", 2 * s.dim)
+    goal = builder.parameter(f"goal{tag}", s.model.state_dim)
     builder.cost += quadratic_cost(X, U, goal, s)
     for n, (G, g) in enumerate(s.obstacles):
-        positions = X[: s.dim, s.first_constrained_step :]
+        positions = X[s.model.position_rows, s.first_constrained_step :]
         add_polytope_avoidance(builder, f"{tag}_o{n}", positions, G, g, s)
     return X, U
 
@@ -260,12 +289,12 @@ def build_centralized(
     builder = ProblemBuilder()
     pairs = agent_pairs(num_agents)
     half = builder.parameter("delta", s.dim, len(pairs))
-    first = s.first_constrained_step
+    first, rows = s.first_constrained_step, s.model.position_rows
     trajectories = [
         add_agent(builder, str(i), s if bodies is None else s.for_body(bodies[i])) for i in range(num_agents)
     ]
     for column, (i, j) in enumerate(pairs):
-        offsets = trajectories[i][0][: s.dim, first:] - trajectories[j][0][: s.dim, first:]
+        offsets = trajectories[i][0][rows, first:] - trajectories[j][0][rows, first:]
         add_pair_avoidance(builder, pair_tag(i, j), offsets, half[:, column], s)
     return builder.build(f"central_{num_agents}", "ipopt", {**IPOPT_OPTIONS, **(options or {})})
 
@@ -302,19 +331,19 @@ def build_local(
     coordinator splits between the two agents (:func:`swarmpc.solvers.admm.separating_planes`).
     """
     builder = ProblemBuilder()
-    d, K, first = s.dim, s.num_constrained, s.first_constrained_step
+    d, K, first, rows = s.dim, s.num_constrained, s.first_constrained_step, s.model.position_rows
     half = builder.parameter("delta", d, num_copies)
     rho = builder.parameter("rho", 1)
     owner_weight = builder.parameter("owner_weight", 1)
     X, _ = add_agent(builder, "", s)
-    own = X[:d, first:]
+    own = X[rows, first:]
     z_own = builder.parameter("Z", d, K)
     y_own = builder.parameter("Y", d, K)
     builder.cost += consensus_penalty(own, z_own, y_own, rho * owner_weight)
     pair_settings = s if pair_collision is None else replace(s, collision=pair_collision)
     for c in range(num_copies):
         if dynamic_copies:
-            copy = add_trajectory(builder, f"c{c}", s)[0][:d, first:]
+            copy = add_trajectory(builder, f"c{c}", s)[0][rows, first:]
         else:
             copy = builder.variable(f"C{c}", d, K)
         z = builder.parameter(f"Z{c}", d, K)

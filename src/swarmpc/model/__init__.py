@@ -1,1 +1,2 @@
-"""Dynamics and geometry: the bottom layer, plain numpy."""
+"""Agent models (the :class:`~swarmpc.model.agent_model.AgentModel` seam, its registry and the
+double integrator) and geometry: the bottom layer, numpy plus each model's CasADi dynamics."""

@@ -87,7 +87,10 @@ class ArrayDoc:
 
 FILES: tuple[FileDoc, ...] = (
     FileDoc("summary.json", "always", "The run's metrics and settings (the keys below)."),
-    FileDoc("trajectory.npz", "always", "The closed-loop trajectory: states, inputs, goals, Δ, bodies, dt (arrays below)."),
+    FileDoc(
+        "trajectory.npz", "always",
+        "The closed-loop trajectory: states, inputs, goals, Δ, bodies, dt (arrays below).",
+    ),
     FileDoc("steps.npz", "always", "Per-step solver records: solve times, failures, fallbacks, slack."),
     FileDoc("admm.npz", "admm", "ADMM residual histories and the neighbours each agent held, per step."),
     FileDoc(
@@ -144,7 +147,10 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
         "Per agent: the first time from which it stays within `stop.goal_tolerance` of its goal to the end "
         "of the run; null if it never does.",
     ),
-    KeyDoc("makespan_s", "number or null", "s", "always", "The latest `time_to_goal_s`; null unless every agent reached."),
+    KeyDoc(
+        "makespan_s", "number or null", "s", "always",
+        "The latest `time_to_goal_s`; null unless every agent reached.",
+    ),
     KeyDoc(
         "overshoot_m", "list of M numbers", "m", "always",
         "Per agent: how far it went past its goal along its start-to-goal direction (0 if never).",
@@ -203,8 +209,14 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
         "admm_repairs", "integer or null", "–", "always",
         "Steps whose ADMM plan needed the repair pass; null for centralised runs.",
     ),
-    KeyDoc("solver_failures", "integer", "–", "always", "Failed solve calls over the run (Σ of `steps.npz` `failures`)."),
-    KeyDoc("fallback_steps", "integer", "–", "always", "Steps in which at least one agent applied a safe fallback plan."),
+    KeyDoc(
+        "solver_failures", "integer", "–", "always",
+        "Failed solve calls over the run (Σ of `steps.npz` `failures`).",
+    ),
+    KeyDoc(
+        "fallback_steps", "integer", "–", "always",
+        "Steps in which at least one agent applied a safe fallback plan.",
+    ),
     KeyDoc("fallback_agent_steps", "integer", "–", "always", "(step, agent) pairs that applied a fallback plan."),
     KeyDoc("deadlocks", "integer", "–", "always", "Deadlock events detected (and acted on) during the run."),
     KeyDoc(
@@ -220,7 +232,10 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
     KeyDoc("rrt.fresh", "integer", "–", "rrt", "Paths planned anew."),
     KeyDoc("rrt.reused", "integer", "–", "rrt", "Guesses taken from a stored path."),
     KeyDoc("rrt.failed", "integer", "–", "rrt", "Fresh plans that found no path (a straight line was used)."),
-    KeyDoc("interrupted", "boolean", "–", "always", "The run was stopped early (Ctrl-C, SIGTERM); the folder holds what ran."),
+    KeyDoc(
+        "interrupted", "boolean", "–", "always",
+        "The run was stopped early (Ctrl-C, SIGTERM); the folder holds what ran.",
+    ),
     KeyDoc("wall_time_s", "number", "s", "always", "Wall time of the whole closed loop."),
 )
 
@@ -251,7 +266,10 @@ ARRAYS: tuple[ArrayDoc, ...] = (
         "trajectory.npz", "disturbances", "(T, M, 2d)", "float64", "m, m/s", "noise",
         "Process noise added to the state after step k: `states[k+1] = f(states[k], inputs[k]) + disturbances[k]`.",
     ),
-    ArrayDoc("steps.npz", "step_time_s", "(T,)", "float64", "s", "always", "Wall time of each step's solve (all agents)."),
+    ArrayDoc(
+        "steps.npz", "step_time_s", "(T,)", "float64", "s", "always",
+        "Wall time of each step's solve (all agents).",
+    ),
     ArrayDoc(
         "steps.npz", "agent_time_s", "(T, M)", "float64", "s", "always",
         "Each agent's solve time in each step, summed over its ADMM iterations (centralised: step time / M).",
@@ -265,7 +283,10 @@ ARRAYS: tuple[ArrayDoc, ...] = (
         "steps.npz", "max_slack", "(T,)", "float64", "m", "always",
         "Largest soft-constraint slack α of each step's plan (0 with `hard`).",
     ),
-    ArrayDoc("steps.npz", "repaired", "(T,)", "bool", "–", "always", "Whether each step's ADMM plan needed the repair pass."),
+    ArrayDoc(
+        "steps.npz", "repaired", "(T,)", "bool", "–", "always",
+        "Whether each step's ADMM plan needed the repair pass.",
+    ),
     ArrayDoc(
         "steps.npz", "critical_path_s", "(T,)", "float64", "s", "always",
         "Compute on each step's critical path: Σ over the step's batches of local steps (ADMM iterations, "
@@ -284,8 +305,14 @@ ARRAYS: tuple[ArrayDoc, ...] = (
         "admm.npz", "dual", "(T, I)", "float64", "ρ·m", "admm",
         "Dual residual per step and iteration: ρ times the RMS change of the consensus; NaN after convergence.",
     ),
-    ArrayDoc("admm.npz", "rho", "(T, I)", "float64", "–", "admm", "Penalty ρ of each iteration; NaN after convergence."),
-    ArrayDoc("admm.npz", "iterations", "(T,)", "int64", "–", "admm", "ADMM iterations of each step (I is their maximum)."),
+    ArrayDoc(
+        "admm.npz", "rho", "(T, I)", "float64", "–", "admm",
+        "Penalty ρ of each iteration; NaN after convergence.",
+    ),
+    ArrayDoc(
+        "admm.npz", "iterations", "(T,)", "int64", "–", "admm",
+        "ADMM iterations of each step (I is their maximum).",
+    ),
     ArrayDoc(
         "admm.npz", "copies", "(T, M)", "int64", "–", "admm",
         "How many neighbours' plan copies each agent held at the end of each step.",

@@ -37,22 +37,29 @@ def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None 
     """The scenario's solver (``solver.method``), built once for the run.
 
     The solver keeps each pair apart by the sum of the planner's bodies (the true ones grown by
-    any tightening), and each agent's body out of the obstacles.
+    any tightening), and each agent's body out of the obstacles. An ADMM solver given
+    ``executor`` leaves it open when closed (its creator closes it); without one it makes and
+    closes its own.
     """
     delta = planner_bodies(scn)
     if scn.solver.method == "centralized":
         return CentralizedSolver(settings, scn.num_agents, delta, scn.solver.seed_duals)
+    return ADMMSolver(settings, scn.num_agents, delta, admm_config(scn), executor)
+
+
+def admm_config(scn: Scenario) -> ADMMConfig:
+    """The scenario's ADMM parameters (``solver`` block); the coupling margin follows the collision
+    form (:func:`~swarmpc.solvers.admm.config.default_coupling`) unless the scenario sets one."""
     margin, closing_time = default_coupling(scn.collision)
     if scn.solver.coupling_margin is not None:  # the scenario's margin, as given
         margin, closing_time = scn.solver.coupling_margin, 0.0
-    config = ADMMConfig(
+    return ADMMConfig(
         rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
         adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
         coupling_margin=margin, closing_time=closing_time, reuse_tol=scn.solver.reuse_tol,
-        relaxation=scn.solver.relaxation, component_stop=scn.solver.component_stop,
-        plane_margin=scn.solver.plane_margin, deadline=scn.solver.deadline, local=scn.solver.local,
+        relaxation=scn.solver.relaxation, plane_margin=scn.solver.plane_margin, deadline=scn.solver.deadline,
+        local=scn.solver.local,
     )
-    return ADMMSolver(settings, scn.num_agents, delta, config, executor)
 
 
 def deadlock_resolver(
@@ -67,7 +74,8 @@ def deadlock_resolver(
 
 
 def close_solver(solver: Any) -> None:
-    """Close ``solver`` (and with it the executor its local solves run on) if it can be closed."""
+    """Close ``solver`` if it can be closed (an ADMM solver closes the executor it made for
+    itself, never one it was given)."""
     close = getattr(solver, "close", None)
     if callable(close):
         close()
@@ -116,9 +124,12 @@ class Controller:
         self.scenario = scn
         self.settings = OCPSettings.from_scenario(scn)
         self._owns_solver = solver is None
-        self._owns_executor = executor is None or isinstance(executor, str)
+        self._made_executor: Executor | None = None
+        """The executor made here from its name (closed by :meth:`close`)."""
         if solver is None:
-            solver = make_solver(scn, self.settings, self._executor(executor))
+            made = self._executor(executor)
+            self._made_executor = made if isinstance(executor, str) else None
+            solver = make_solver(scn, self.settings, made)
         self.solver = solver
         self.guesser = GuessProvider(scn, self.settings)
         self.deadlocks = deadlocks or deadlock_resolver(scn)
@@ -203,9 +214,12 @@ class Controller:
 
     # ----------------------------------------------------------------- lifetime
     def close(self) -> None:
-        """Release what the controller created (its solver's own or named executor); idempotent."""
-        if not self._closed and self._owns_solver and self._owns_executor:
-            close_solver(self.solver)
+        """Release what the controller created (its solver, an executor made from a name); idempotent."""
+        if not self._closed:
+            if self._owns_solver:
+                close_solver(self.solver)
+            if self._made_executor is not None:
+                self._made_executor.close()
         self._closed = True
 
     def __enter__(self) -> Controller:

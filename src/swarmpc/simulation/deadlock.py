@@ -47,8 +47,11 @@ cannot pass over or under each other, only side by side.
 
 Every threshold is a field of :class:`DeadlockPolicy`, set from a scenario's ``deadlock:`` section
 (:class:`swarmpc.config.DeadlockConfig`, which documents each key; ``enabled: false`` switches
-the rules off). Why each rule exists and what it changed, with the runs that showed it:
-docs/reliability.md §2 and the lab record, docs/lab/admm.md.
+the rules off). Why each rule exists: docs/design/reliability.md; the runs that showed what each
+changed: docs/lab/admm.md.
+
+The resolver reads states through the agents' :class:`~swarmpc.model.agent_model.AgentModel`
+(positions, velocities, detour goals as states at rest), so it works for any state layout.
 """
 
 from __future__ import annotations
@@ -57,6 +60,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from swarmpc.model.agent_model import AgentModel, make_model
 
 if TYPE_CHECKING:
     from swarmpc.config import DeadlockConfig
@@ -133,14 +138,20 @@ def right_turn(direction: np.ndarray, angle: float) -> np.ndarray:
 
 
 class DeadlockResolver:
-    """Tracks stalled agents and hands out the goals the MPC should use this step."""
+    """Tracks stalled agents and hands out the goals the MPC should use this step.
+
+    ``model`` is the agents' model, whose states :meth:`goals` reads and writes; None: the double
+    integrator of ``dim`` (only its state layout is used, which does not depend on dt).
+    """
 
     def __init__(
         self, num_agents: int, dim: int, policy: DeadlockPolicy = DeadlockPolicy(), seed: int = 0,
         clearance: float | np.ndarray = 0.35, bounds: tuple[np.ndarray, np.ndarray] | None = None,
+        model: AgentModel | None = None,
     ) -> None:
         self.policy = policy
         self.dim = dim
+        self.model = model if model is not None else make_model("double_integrator", dim, 1.0)
         self.bounds = bounds
         self._lifts = np.zeros(num_agents, int)
         self._waiting = np.zeros(num_agents, int)
@@ -259,10 +270,10 @@ class DeadlockResolver:
     def _untie(self, step: int, cycle: np.ndarray, positions: np.ndarray, goals: np.ndarray) -> None:
         """Lift the knot's member lifted least so far out of the knot's layer (see ``_way_out``)
         for ``lift_hold`` steps; the others wait for their goals to clear."""
-        p = self.policy
+        p, model = self.policy, self.model
         lifter = int(cycle[np.lexsort((cycle, self._lifts[cycle]))[0]])
-        target = goals[lifter].copy()
-        target[: self.dim] = self._way_out(lifter, positions, goals[:, : self.dim])
+        way_out = self._way_out(lifter, positions, model.position(goals))
+        target = model.state_at(way_out, model.velocity(goals[lifter]))
         self._lifts[lifter] += 1
         self._detour_goal[lifter] = target
         self._detour_left[lifter] = p.lift_hold
@@ -273,13 +284,14 @@ class DeadlockResolver:
     def goals(self, step: int, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Goals for this step: the true ones, or a detour for agents found deadlocked (always the
         true ones when the policy is not ``enabled``)."""
-        p, d = self.policy, self.dim
+        p, model = self.policy, self.model
         if not p.enabled:
             return goals.copy()
-        positions, speeds = states[:, :d], np.linalg.norm(states[:, d:], axis=1)
-        to_goal = goals[:, :d] - positions
+        positions, speeds = model.position(states), np.linalg.norm(model.velocity(states), axis=1)
+        goal_positions = model.position(goals)
+        to_goal = goal_positions - positions
         distance = np.linalg.norm(to_goal, axis=1)
-        blocked = self.blocked(positions, goals[:, :d])
+        blocked = self.blocked(positions, goal_positions)
         progress = self._distance - distance if self._distance is not None else np.zeros_like(distance)
         self._distance = distance
         approaching = (distance < p.approach_radius) & (progress >= p.min_progress)
@@ -292,7 +304,7 @@ class DeadlockResolver:
         stalled = slow & (distance > p.distance_threshold) & ~approaching
         stalled &= blocked | (distance > p.approach_radius)
         if p.spare_free_goals:
-            exempt = (distance < p.approach_radius) & self.goal_free(positions, goals[:, :d])
+            exempt = (distance < p.approach_radius) & self.goal_free(positions, goal_positions)
             self._spared = np.where(stalled & exempt, self._spared + 1, 0)
             if p.free_goal_patience is not None:
                 exempt &= self._spared <= p.free_goal_patience
@@ -302,7 +314,7 @@ class DeadlockResolver:
         out = goals.copy()
         self._waiting = np.maximum(self._waiting - 1, 0)
         due &= self._waiting == 0  # a knot's members wait while one of them is lifted out
-        for cycle in self.knots(positions, goals[:, :d], distance > p.distance_threshold, due):
+        for cycle in self.knots(positions, goal_positions, distance > p.distance_threshold, due):
             self._untie(step, cycle, positions, goals)
             due[cycle] = False
         for i in np.flatnonzero(due & (self._detour_left == 0)):
@@ -313,8 +325,7 @@ class DeadlockResolver:
                 hold = int(round(hold * self._rng.uniform(1.0, 1.0 + p.stretch)))
             self._repeats[i] += 1
             direction = right_turn(to_goal[i] / distance[i], np.radians(angle))
-            target = np.zeros_like(goals[i])
-            target[:d] = positions[i] + p.detour * min(1.0, distance[i]) * direction
+            target = model.state_at(positions[i] + p.detour * min(1.0, distance[i]) * direction)  # at rest
             self._detour_goal[int(i)] = target
             self._detour_left[i] = hold
             self._stalled[i] = 0

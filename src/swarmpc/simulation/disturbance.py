@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from swarmpc.config import Disturbance, Scenario
+from swarmpc.model.agent_model import AgentModel, make_model
 
 _PROCESS_STREAM = 1
 _MEASUREMENT_STREAM = 2
@@ -36,21 +37,29 @@ def planner_delta(scn: Scenario) -> np.ndarray:
 
 
 class DisturbanceModel:
-    """Draws the per-step process noise (M, 2d) and the measurement noise (M, 2d) of a run."""
+    """Draws the per-step process noise (M, n) and the measurement noise (M, n) of a run.
 
-    def __init__(self, config: Disturbance, num_agents: int, dim: int, seed: int) -> None:
+    The noise is on the states of the agents' ``model`` (None: the double integrator of ``dim``,
+    whose state layout alone is used): each state gets the position and velocity standard
+    deviations of the ``disturbance`` block where the model holds a position and a velocity
+    (:meth:`~swarmpc.model.agent_model.AgentModel.state_at` of the two).
+    """
+
+    def __init__(self, config: Disturbance, num_agents: int, dim: int, seed: int,
+                 model: AgentModel | None = None) -> None:
         self.config = config
-        self.shape = (num_agents, 2 * dim)
+        self.model = model if model is not None else make_model("double_integrator", dim, 1.0)
+        self.shape = (num_agents, self.model.state_dim)
         self.dim = dim
         self._process = np.random.default_rng([seed, _PROCESS_STREAM])
         self._measurement = np.random.default_rng([seed, _MEASUREMENT_STREAM])
 
     @classmethod
     def from_scenario(cls, scn: Scenario) -> DisturbanceModel:
-        return cls(scn.disturbance, scn.num_agents, scn.dim, scn.seed)
+        return cls(scn.disturbance, scn.num_agents, scn.dim, scn.seed, scn.agent_model())
 
     def _std(self, position: float, velocity: float) -> np.ndarray:
-        return np.concatenate([np.full(self.dim, position), np.full(self.dim, velocity)])
+        return self.model.state_at(np.full(self.dim, position), np.full(self.dim, velocity))
 
     def process(self) -> np.ndarray:
         """Additive noise on the true state after one step (zeros when process noise is off)."""

@@ -14,7 +14,8 @@ from swarmpc.solvers.rrt import RRTGuess, straight_line_guess
 
 
 class GuessProvider:
-    """Builds every agent's (N+1, 2d) state guess at each MPC step.
+    """Builds every agent's (N+1, n) state guess (states of the settings' agent model) at each MPC
+    step.
 
     * ``straight``: straight line to the goal at a reachable speed;
     * ``shifted``: the agent's previous plan moved one step forward (straight at the start);
@@ -70,32 +71,33 @@ class GuessProvider:
         return {key: sum(s[key] for s in stats) for key in stats[0]}
 
     def _fresh(self, agent: int, state: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        s = self.settings
+        s, model = self.settings, self.settings.model
         if self._rrt_of:
             if self._route is not None and agent < len(self._route):
                 goal = self._route[agent]  # plan (and reuse) towards the route goal, not the waypoint
-            guess = self._rrt_of[agent].guess(agent, state, goal[: s.dim], s.dt, s.horizon, self.speed)
+            guess = self._rrt_of[agent].guess(agent, state, model.position(goal), s.dt, s.horizon, self.speed, model)
             if guess is not None:
                 return guess
-        return straight_line_guess(state, goal[: s.dim], s.dt, s.horizon, self.speed)
+        return straight_line_guess(state, model.position(goal), s.dt, s.horizon, self.speed, model)
 
     def goals(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """This step's MPC goals: an RRT waypoint for agents whose straight line is blocked."""
         if not self._rrt_of:
             return goals
-        d = self.settings.dim
+        model = self.settings.model
         self._route = goals.copy()
         out = goals.copy()
         for i, (state, goal) in enumerate(zip(states, goals)):
-            if self._rrt_of[i].line_of_sight(state[:d], goal[:d]):
+            here, there = model.position(state), model.position(goal)
+            if self._rrt_of[i].line_of_sight(here, there):
                 continue
-            waypoint = self._rrt_of[i].waypoint(i, state[:d], goal[:d], self.lookahead)
+            waypoint = self._rrt_of[i].waypoint(i, here, there, self.lookahead)
             if waypoint is not None:
-                out[i] = np.concatenate([waypoint, np.zeros(d)])
+                out[i] = model.state_at(waypoint)  # at rest there
         return out
 
     def guesses(self, states: np.ndarray, goals: np.ndarray, previous: PlanStep | None) -> np.ndarray:
-        """(M, N+1, 2d) guesses for measured ``states`` (M, 2d)."""
+        """(M, N+1, n) guesses for measured ``states`` (M, n)."""
         out = []
         for i, (state, goal) in enumerate(zip(states, goals)):
             shiftable = previous is not None and np.allclose(previous.states[i, 1], state, atol=SHIFT_TOLERANCE)
@@ -103,8 +105,8 @@ class GuessProvider:
                 plan = previous.states[i]  # type: ignore[union-attr]
                 out.append(np.vstack([plan[1:], plan[-1:]]))
             elif self.strategy == "straight":
-                out.append(straight_line_guess(state, goal[: self.settings.dim], self.settings.dt,
-                                               self.settings.horizon, self.speed))
+                s = self.settings
+                out.append(straight_line_guess(state, s.model.position(goal), s.dt, s.horizon, self.speed, s.model))
             else:
                 out.append(self._fresh(i, state, goal))
         return np.array(out)

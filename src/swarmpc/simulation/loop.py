@@ -19,7 +19,6 @@ from swarmpc.config import Scenario
 from swarmpc.simulation.controller import (
     Controller,
     MPCSolver,
-    close_solver,
     deadlock_resolver,
     make_solver,
 )
@@ -86,7 +85,7 @@ def simulate(
     The plant is the scenario's (``plant.type``) unless one is given. With a ``disturbance`` block
     the controller sees the measured state (true + measurement noise) and the true state receives
     process noise after each step; the stop test and every metric use the true state. A solver or
-    executor handed in is closed when the loop ends, as the callers expect.
+    executor handed in stays open: whoever created it closes it.
     """
     scn = scn.revalidated()  # the lists of a frozen scenario can still be changed in place
     started = time.perf_counter()
@@ -107,8 +106,6 @@ def simulate(
             recording.add(states, control, controller.last_record, plant.last_disturbance)  # type: ignore[arg-type]
             if progress is not None:
                 progress(step + 1, scn.stop.max_steps, states)
-        if solver is not None or executor is not None:
-            close_solver(controller.solver)
     states, inputs, disturbances = recording.arrays(scn)
     result = RunResult.create(
         scenario=scn,

@@ -1,4 +1,6 @@
-"""Run metrics, recomputed from the saved arrays (the summary contract of design.md section 8).
+"""Run metrics, recomputed from the saved arrays (the ``summary.json`` keys of
+docs/run-folder-reference.md). Positions are read from the states through the scenario's agent
+model (:meth:`swarmpc.config.Scenario.agent_model`).
 
 Safety is measured between the agents' bodies (half-sizes ``Scenario.bodies``): a pair collides
 when its bodies overlap, |p_i - p_j| < b_i + b_j on every axis (< delta with default bodies), and
@@ -37,8 +39,9 @@ def min_separation_inf(positions: np.ndarray) -> float:
 
 
 def final_goal_distance(states: np.ndarray, scn: Scenario) -> np.ndarray:
-    d = scn.dim
-    return np.linalg.norm(states[-1, :, :d] - scn.goal_states()[:, :d], axis=1)
+    """Per agent, the Euclidean distance of its last position to its goal."""
+    model = scn.agent_model()
+    return np.linalg.norm(model.position(states[-1]) - model.position(scn.goal_states(model)), axis=1)
 
 
 def stats(values: np.ndarray | list[float], scale: float = 1.0) -> dict[str, float | None]:
@@ -68,7 +71,7 @@ def summarize(
 ) -> dict[str, Any]:
     """The ``summary.json`` dictionary: every number recomputed from the trajectory."""
     d = scn.dim
-    positions = states[:, :, :d]
+    positions = scn.agent_model().position(states)
     bodies = scn.bodies
     reached = final_goal_distance(states, scn) <= scn.stop.goal_tolerance + 1e-9
     separation = min_separation_inf(positions)

@@ -21,7 +21,8 @@ The model (MJCF, built in code; :func:`build_mjcf`):
 * agent bodies collide with each other and with obstacles (contype = conaffinity = 1), and the
   physics runs at ``physics_dt`` (dt split into equal substeps).
 
-The state [qpos, qvel] of each agent's joints is its [p, v]. MuJoCo is imported only when this
+The bodies' joints realise the double integrator (the scenario's agent model): an agent's state
+is its model state at position qpos moving with velocity qvel. MuJoCo is imported only when this
 plant is built, so ``import swarmpc`` and double-integrator runs never load it.
 """
 
@@ -35,7 +36,6 @@ from typing import Any
 import numpy as np
 
 from swarmpc.config import PlantConfig, Scenario
-from swarmpc.model.dynamics import DoubleIntegrator
 from swarmpc.simulation.disturbance import DisturbanceModel
 from swarmpc.simulation.plant import checked_inputs
 from swarmpc.viewer import polytope_vertices
@@ -71,12 +71,12 @@ def _lifted(vector: np.ndarray, fill: float) -> np.ndarray:
     return np.append(vector, fill) if vector.size == 2 else vector
 
 
-def _add_agent(world: ET.Element, actuators: ET.Element, index: int, start: np.ndarray,
+def _add_agent(world: ET.Element, actuators: ET.Element, index: int, position: np.ndarray,
                half: np.ndarray, config: PlantConfig) -> None:
-    """Agent ``index``: a body at its start, a slide joint and a force actuator per axis, a box geom."""
-    dim = start.size // 2
+    """Agent ``index``: a body at its start ``position``, a slide joint and a force actuator per
+    axis, a box geom."""
+    dim = position.size
     name = f"agent{index}"
-    position = start[:dim]
     body = ET.SubElement(world, "body", name=name, pos=_numbers(_lifted(position, 0.0)))
     mass, drag, lag = float(config.mass), float(config.drag), float(config.lag_s)  # type: ignore[arg-type]
     actuator = {"gainprm": repr(mass), "ctrllimited": "false"}
@@ -124,7 +124,8 @@ def build_mjcf(scn: Scenario, config: PlantConfig, substeps: int) -> str:
     asset = ET.SubElement(root, "asset")
     world = ET.SubElement(root, "worldbody")
     actuators = ET.SubElement(root, "actuator")
-    for i, (start, half) in enumerate(zip(scn.start_states(), scn.bodies)):
+    model = scn.agent_model()
+    for i, (start, half) in enumerate(zip(model.position(scn.start_states(model)), scn.bodies)):
         _add_agent(world, actuators, i, start, half, config)
     _add_obstacles(scn, world, asset)
     if not len(asset):
@@ -186,16 +187,17 @@ class MuJoCoPlant:
         self.model = self.mujoco.MjModel.from_xml_string(self.mjcf)
         self.data = self.mujoco.MjData(self.model)
         self.on_physics_step = on_physics_step
-        self.nominal_model = DoubleIntegrator(scn.dim, scn.dt, scn.discretization)
+        self.nominal_model = scn.agent_model()
         self.reset()
 
     def reset(self) -> np.ndarray:
         """Every body at its start (with the start's velocity), actuators at rest, counters at zero."""
         scn = self.scenario
         self.mujoco.mj_resetData(self.model, self.data)
-        starts = scn.start_states()
-        self.data.qpos[:] = starts[:, : scn.dim].reshape(-1)
-        self.data.qvel[:] = starts[:, scn.dim :].reshape(-1)
+        model = self.nominal_model
+        starts = scn.start_states(model)
+        self.data.qpos[:] = model.position(starts).reshape(-1)
+        self.data.qvel[:] = model.velocity(starts).reshape(-1)
         self.mujoco.mj_forward(self.model, self.data)
         self.noise = DisturbanceModel.from_scenario(scn)
         self.contacts = ContactCounter(self.model, scn.num_agents)
@@ -205,9 +207,9 @@ class MuJoCoPlant:
         return states
 
     def true_states(self) -> np.ndarray:
-        """(M, 2d) [qpos, qvel] of every agent's joints, i.e. its [p, v]."""
+        """(M, n) every agent's state at its joints' qpos moving with their qvel ([p, v])."""
         m, d = self.scenario.num_agents, self.scenario.dim
-        return np.hstack([self.data.qpos.reshape(m, d), self.data.qvel.reshape(m, d)])
+        return self.nominal_model.state_at(self.data.qpos.reshape(m, d), self.data.qvel.reshape(m, d))
 
     def measure(self) -> np.ndarray:
         return self.true_states() + self.noise.measurement()
@@ -232,10 +234,10 @@ class MuJoCoPlant:
     def _add_process_noise(self) -> None:
         if not self.scenario.disturbance.has_process_noise:
             return
-        d = self.scenario.dim
+        model = self.nominal_model
         noise = self.noise.process()
-        self.data.qpos[:] += noise[:, :d].reshape(-1)
-        self.data.qvel[:] += noise[:, d:].reshape(-1)
+        self.data.qpos[:] += model.position(noise).reshape(-1)
+        self.data.qvel[:] += model.velocity(noise).reshape(-1)
         self.mujoco.mj_forward(self.model, self.data)
 
     def describe(self) -> dict[str, Any]:

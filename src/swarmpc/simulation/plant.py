@@ -4,8 +4,9 @@ A :class:`Plant` holds the true states of all agents. The loop asks it what the 
 (:meth:`Plant.measure`), hands the measurement to the controller and applies the controller's
 inputs for one sampling period (:meth:`Plant.step`). Two plants come with swarmpc:
 
-* :class:`DoubleIntegratorPlant`: the planner's own model, exactly, plus the scenario's seeded
-  ``disturbance`` noise (the default, and what every run did before plants existed);
+* :class:`DoubleIntegratorPlant`: the planner's own agent model (the scenario's
+  :meth:`~swarmpc.config.Scenario.agent_model`, the double integrator), exactly, plus the
+  scenario's seeded ``disturbance`` noise (the default plant);
 * :class:`~swarmpc.simulation.mujoco_plant.MuJoCoPlant`: rigid bodies in the MuJoCo physics
   engine (``plant: {type: mujoco}``), imported only when a scenario asks for it.
 
@@ -22,29 +23,29 @@ from typing import Any, Protocol
 import numpy as np
 
 from swarmpc.config import PlantConfig, Scenario
-from swarmpc.model.dynamics import DoubleIntegrator
 from swarmpc.simulation.disturbance import DisturbanceModel
 
 
 class Plant(Protocol):
-    """The true system of the closed loop: M agents with states [p, v] of 2d entries each."""
+    """The true system of the closed loop: M agents with the states of the scenario's agent model
+    (n entries each: [p, v], 2d, for the double integrator)."""
 
     nominal: bool
     """True when the states follow the nominal model exactly (no disturbances to record)."""
     last_disturbance: np.ndarray
-    """(M, 2d) true state after the last :meth:`step` minus the nominal model's step from the state
+    """(M, n) true state after the last :meth:`step` minus the nominal model's step from the state
     before it (zeros before the first step)."""
 
     def reset(self) -> np.ndarray:
-        """Put every agent at its start; return the true states (M, 2d)."""
+        """Put every agent at its start; return the true states (M, n)."""
         ...
 
     def step(self, inputs: np.ndarray) -> np.ndarray:
-        """Apply ``inputs`` (M, d) for one sampling period; return the true states (M, 2d)."""
+        """Apply ``inputs`` (M, m) for one sampling period; return the true states (M, n)."""
         ...
 
     def measure(self) -> np.ndarray:
-        """The states (M, 2d) the sensors report now (the true ones plus any measurement noise)."""
+        """The states (M, n) the sensors report now (the true ones plus any measurement noise)."""
         ...
 
     def describe(self) -> dict[str, Any]:
@@ -53,7 +54,8 @@ class Plant(Protocol):
 
 
 def checked_inputs(inputs: Any, num_agents: int, dim: int) -> np.ndarray:
-    """``inputs`` as a finite float array of shape (M, d); ValueError (one line) otherwise."""
+    """``inputs`` as a finite float array of shape (M, ``dim``), ``dim`` the model's input size;
+    ValueError (one line) otherwise."""
     try:
         array = np.asarray(inputs, float)
     except (TypeError, ValueError):
@@ -66,7 +68,8 @@ def checked_inputs(inputs: Any, num_agents: int, dim: int) -> np.ndarray:
 
 
 class DoubleIntegratorPlant:
-    """The planner's discrete double integrator, with the scenario's process and measurement noise.
+    """The planner's agent model (the discrete double integrator), with the scenario's process and
+    measurement noise.
 
     The noise comes from :class:`~swarmpc.simulation.disturbance.DisturbanceModel`, seeded by the
     scenario: measurement noise is drawn in :meth:`measure`, process noise in :meth:`step`, so a
@@ -76,7 +79,7 @@ class DoubleIntegratorPlant:
 
     def __init__(self, scn: Scenario) -> None:
         self.scenario = scn
-        self.model = DoubleIntegrator(scn.dim, scn.dt, scn.discretization)
+        self.model = scn.agent_model()
         self.nominal = not scn.disturbance.has_process_noise
         self.noise = DisturbanceModel.from_scenario(scn)
         self.states = scn.start_states()
@@ -92,7 +95,7 @@ class DoubleIntegratorPlant:
         return self.states + self.noise.measurement()
 
     def step(self, inputs: np.ndarray) -> np.ndarray:
-        control = checked_inputs(inputs, self.scenario.num_agents, self.scenario.dim)
+        control = checked_inputs(inputs, self.scenario.num_agents, self.model.input_dim)
         disturbance = self.noise.process()
         self.states = self.model.step(self.states, control) + disturbance
         self.last_disturbance = disturbance

@@ -561,6 +561,7 @@ def _read_admm(path: Path, steps: int, agents: int) -> AdmmResiduals:
     if primal.ndim != 2 or primal.shape[0] != steps:
         raise RunDataError(f"{path}: 'primal' must be ({steps}, iterations) for {steps} steps, got {primal.shape}")
     dual = _admm_array(arrays, "dual", path, primal.shape, nan_ok=True)
+    assert dual is not None  # present: checked above
     rho = _admm_array(arrays, "rho", path, primal.shape, nan_ok=True)
     iterations = _admm_array(arrays, "iterations", path, (steps,), nan_ok=False)
     if iterations is None:

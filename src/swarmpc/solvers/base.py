@@ -7,15 +7,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.model.dynamics import DoubleIntegrator
 
 
 @dataclass(frozen=True)
 class PlanStep:
     """The outcome of one MPC step for the whole swarm.
 
-    ``states`` (M, N+1, 2d) and ``inputs`` (M, N, d) are each agent's own, dynamically feasible
-    plan; ``fallback`` marks agents whose solve failed and whose plan is a safe fallback.
+    ``states`` (M, N+1, n) and ``inputs`` (M, N, m) (the agent model's states and inputs: [p, v]
+    and a for the double integrator) are each agent's own, dynamically feasible plan;
+    ``fallback`` marks agents whose solve failed and whose plan is a safe fallback.
     """
 
     states: np.ndarray
@@ -45,32 +45,22 @@ class PlanStep:
     """ADMM stopped iterating because another iteration would have overrun ``solver.deadline``."""
 
 
-def input_bounds(settings: OCPSettings) -> np.ndarray:
-    """Per-axis acceleration bound (inf when unbounded)."""
-    return settings.accel if settings.accel is not None else np.full(settings.dim, np.inf)
-
-
 def braking_plan(state: np.ndarray, settings: OCPSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Decelerate to rest as hard as the limits allow, then hold: (states (N+1, 2d), inputs (N, d)).
+    """Come to rest as fast as the limits allow, then hold: (states (N+1, n), inputs (N, m)).
 
-    Without acceleration limits it stops within one step, the safest thing a double integrator
-    can do when no plan can be trusted.
+    The model's :meth:`~swarmpc.model.agent_model.AgentModel.braking_inputs`, the safest thing an
+    agent can do when no plan can be trusted (a double integrator without acceleration limits
+    stops within one step).
     """
-    model = DoubleIntegrator(settings.dim, settings.dt, settings.discretization)  # type: ignore[arg-type]
-    d, amax = settings.dim, input_bounds(settings)
-    states = [np.asarray(state, float)]
-    inputs = []
-    for _ in range(settings.horizon):
-        velocity = states[-1][d:]
-        control = np.clip(-velocity / settings.dt, -amax, amax)
-        inputs.append(control)
-        states.append(model.step(states[-1], control))
-    return np.array(states), np.array(inputs)
+    model = settings.model
+    inputs = model.braking_inputs(np.asarray(state, float), settings.horizon, settings.accel)
+    return model.rollout(state, inputs), inputs
 
 
-# How far (inf-norm over the state, m and m/s) the measured state may sit from where the previous
-# plan expected it for that plan to still be reused (as a warm start or a fallback). Zero would
-# never reuse a plan under measurement or process noise; 0.05 is a sixth of the default delta.
+# How far (inf-norm over the state: m and m/s for the double integrator) the measured state may
+# sit from where the previous plan expected it for that plan to still be reused (as a warm start
+# or a fallback). Zero would never reuse a plan under measurement or process noise; 0.05 is a
+# sixth of the default delta.
 SHIFT_TOLERANCE = 0.05
 
 
@@ -90,10 +80,9 @@ def fallback_plan(
         gap = np.max(np.abs(previous_states[1] - state))
         # a plan that already starts at ``state`` (this step's own) is not a previous plan
         if gap <= tolerance and gap <= np.max(np.abs(previous_states[0] - state)):
-            model = DoubleIntegrator(settings.dim, settings.dt, settings.discretization)  # type: ignore[arg-type]
-            d, amax = settings.dim, input_bounds(settings)
+            model = settings.model
             replayed = model.rollout(state, previous_inputs[1:])
-            tail = np.clip(-replayed[-1][d:] / settings.dt, -amax, amax)
+            tail = model.braking_inputs(replayed[-1], 1, settings.accel)[0]
             inputs = np.vstack([previous_inputs[1:], tail[None]])
             return np.vstack([replayed, model.step(replayed[-1], tail)[None]]), inputs
     return braking_plan(state, settings)

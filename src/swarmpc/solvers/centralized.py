@@ -40,18 +40,18 @@ class CentralizedSolver:
         self._previous_plan = None
 
     def initial_point(self, guess: np.ndarray, seed: bool = True) -> dict[str, np.ndarray]:
-        """Primal guess from state guesses (M, N+1, 2d): trajectories and certificates."""
+        """Primal guess from state guesses (M, N+1, n): trajectories and certificates."""
         s, first = self.settings, self.settings.first_constrained_step
         point: dict[str, np.ndarray] = {}
         for i in range(self.num_agents):
             point.update(agent_guess_blocks(str(i), guess[i], self.agent_settings[i], seed and self.seed_duals))
         for (i, j), delta in zip(self.pairs, self.pair_deltas):
-            offsets = guess[i, first:, : s.dim] - guess[j, first:, : s.dim]
+            offsets = s.model.position(guess[i, first:]) - s.model.position(guess[j, first:])
             point.update(pair_guess_blocks(pair_tag(i, j), offsets, delta, s, seed and self.seed_duals))
         return point
 
     def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep:
-        """One MPC step from measured ``states`` (M, 2d) towards ``goals`` (M, 2d)."""
+        """One MPC step from measured ``states`` (M, n) towards ``goals`` (M, n)."""
         started = time.perf_counter()
         params: dict[str, np.ndarray] = {"delta": self.pair_deltas.T}
         for i in range(self.num_agents):
@@ -67,9 +67,9 @@ class CentralizedSolver:
             lam_g = self.nlp.g_layout.pack(shift_blocks(self.nlp.g_layout.unpack(self._previous.lam_g)))
             lam_x = self.nlp.x_layout.pack(shift_blocks(self.nlp.x_layout.unpack(self._previous.lam_x)))
         solution = self.nlp.solve(params, point, lam_x, lam_g)
-        d, M = self.settings.dim, self.num_agents
-        plans_x = np.empty((M, self.settings.horizon + 1, 2 * d))
-        plans_u = np.empty((M, self.settings.horizon, d))
+        model, M = self.settings.model, self.num_agents
+        plans_x = np.empty((M, self.settings.horizon + 1, model.state_dim))
+        plans_u = np.empty((M, self.settings.horizon, model.input_dim))
         fallback = np.zeros(M, bool)
         if solution.success:
             self._previous = solution

@@ -16,12 +16,11 @@ import sys
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from pathlib import Path
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-
 
 RAY_CONNECT_TIMEOUT_S = 10.0
 """How long joining a Ray cluster may take before the run is refused."""
@@ -161,7 +160,7 @@ class ProcessExecutor:
             self._connections[worker].send(batch)
         answers: dict[int, Any] = {}
         for worker, batch in batches.items():
-            for request, result in zip(batch, self._receive(self._connections[worker])):
+            for request, result in zip(batch, self._receive(self._connections[worker]), strict=True):
                 answers[request.agent] = result
         return [answers[r.agent] for r in requests]
 
@@ -186,7 +185,7 @@ executor sends each of them again only when it changed since it last went to tha
 
 def _same(a: Any, b: Any) -> bool:
     if isinstance(a, tuple) and isinstance(b, tuple):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
     if a is None or b is None:
         return a is b
     return np.array_equal(a, b)
@@ -290,7 +289,7 @@ class RayExecutor:
                    for a, batch in batches.items()}
         answers: dict[int, Any] = {}
         for a, batch in batches.items():
-            for request, result in zip(batch, self._ray.get(futures[a])):
+            for request, result in zip(batch, self._ray.get(futures[a]), strict=True):
                 answers[request.agent] = result
         return [answers[r.agent] for r in requests]
 
@@ -315,7 +314,8 @@ def use_token_if_present() -> None:
     if os.environ.get("RAY_AUTH_TOKEN") or token_file.is_file():
         os.environ["RAY_AUTH_MODE"] = "token"
         try:  # Ray reads its configuration once; refresh it as Ray's own switch to token mode does
-            from ray._raylet import Config
+            # Config exists at run time but ray's stub of _raylet leaves it out
+            from ray._raylet import Config  # type: ignore[attr-defined]
 
             Config.initialize("")
         except (ImportError, AttributeError):  # pragma: no cover - another Ray version

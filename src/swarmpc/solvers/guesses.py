@@ -1,8 +1,10 @@
 """Initial guesses for the MPC solvers: states, inputs and OBCA certificates.
 
-A guess is an (N+1, 2d) state trajectory per agent whose first row is the measured state. From it
-the inputs follow (velocity differences) and the certificates lambda (and soft slacks) follow from
-geometry (:mod:`swarmpc.solvers.dual_seed`), so a solver is seeded with a primal point that is
+A guess is an (N+1, n) state trajectory of the agent model per agent whose first row is the
+measured state. From it the inputs follow (the model's
+:meth:`~swarmpc.model.agent_model.AgentModel.guess_inputs`: velocity differences for the double
+integrator) and the certificates lambda (and soft slacks) follow from geometry
+(:mod:`swarmpc.solvers.dual_seed`), so a solver is seeded with a primal point that is
 consistent in every block. With ``seed_duals=False`` the certificates are left out and the solver
 starts them at 0 (the comparison of both is in docs/lab/initial-guesses.md).
 """
@@ -17,12 +19,11 @@ from swarmpc.solvers.dual_seed import obstacle_seed, pair_seed, polytope_certifi
 
 
 def inputs_from_states(states: np.ndarray, settings: OCPSettings) -> np.ndarray:
-    """Accelerations (N, d) that reproduce the guessed velocities, clipped to the limits."""
-    d = settings.dim
-    accel = np.diff(states[:, d:], axis=0) / settings.dt
-    if settings.accel is not None:
-        accel = np.clip(accel, -settings.accel, settings.accel)
-    return accel
+    """Inputs (N, m) that reproduce a guessed state trajectory (N+1, n), clipped to the input box
+    (for the double integrator: the accelerations of the guessed velocities)."""
+    model = settings.model
+    lower, upper = model.input_bounds(settings.accel, settings.speed)
+    return np.clip(model.guess_inputs(states), lower, upper)
 
 
 def pair_certificates(offsets: np.ndarray, half_size: np.ndarray) -> np.ndarray:
@@ -48,7 +49,7 @@ def agent_guess_blocks(
     first = settings.first_constrained_step
     blocks = {f"X{tag}": states.T, f"U{tag}": inputs_from_states(states, settings).T}
     if seed_duals:
-        blocks.update(obstacle_seed(tag, states[first:, : settings.dim], settings))
+        blocks.update(obstacle_seed(tag, settings.model.position(states[first:]), settings))
     return blocks
 
 

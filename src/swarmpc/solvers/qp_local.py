@@ -28,18 +28,22 @@ Certificate loop (:class:`SequentialLocalQP`), a convex-restriction SCP:
 If the first QP is infeasible (the guess's certificates demand a separation the dynamics cannot
 reach), the loop restarts from the certificates of the coasting and then the braking plan.
 
-The QP solver is OSQP through its own API, chosen by measurement (benchmarks/qp_solvers.py: the
-fastest sparse solver once certificate rounds change matrix values; DAQP is faster only while
-nothing but vectors change and the solver keeps its own working set, which a solver shared by
-agents cannot). It is set up once per problem shape (copies, planes, pinned copies, pair form); a
-call changes only vectors and, where certificates or planes changed, matrix VALUES in a fixed
-sparsity pattern (explicit zeros kept), updated in place. A first-order answer violates rows by
-up to its tolerance: polishing makes it exact on its active set in practice, every separation,
-workspace, plane and speed row is tightened by ``margin`` in case it does not, and the applied
-plan is rebuilt exactly (inputs clipped to their box, states rolled out through the discrete
-dynamics) and checked: separations by the values of its dual-feasible certificates (lower bounds
-on the distances, exact certificates if those fall short), the rest directly. A hard-form plan
-that is not clear is reported failed.
+The QP solver is OSQP through its own API: a sparse solver whose matrix values can be updated in
+place, which the certificate rounds need (an active-set solver such as DAQP only pays off while
+nothing but vectors change and it keeps its own working set, which a solver shared by agents
+cannot; benchmarks/qp_solvers.py compares the candidates). It is set up once per problem shape
+(copies, planes, pinned copies, pair form); a call changes only vectors and, where certificates
+or planes changed, matrix VALUES in a fixed sparsity pattern (explicit zeros kept), updated in
+place. A first-order answer violates rows by up to its tolerance: polishing makes it exact on its
+active set in practice, every separation, workspace, plane and speed row is tightened by
+``margin`` in case it does not, and the applied plan is rebuilt exactly (inputs clipped to their
+box, states rolled out through the discrete dynamics) and checked: separations by the values of
+its dual-feasible certificates (lower bounds on the distances, exact certificates if those fall
+short), the rest directly. A hard-form plan that is not clear is reported failed.
+
+The QP needs a linear agent model (:meth:`~swarmpc.model.agent_model.AgentModel.linear_matrices`)
+whose velocity is a linear function of the state (the speed rows); positions are the model's
+``position_rows``.
 
 Interface: :class:`QPLocalLadder` has the ``solve`` signature of
 :class:`swarmpc.solvers.admm.LocalSolverLadder` and returns :class:`NLPSolution` with the same
@@ -70,7 +74,6 @@ from scipy.spatial import HalfspaceIntersection
 from swarmpc.formulation.certificates import PolytopeCertifier, box_certificates
 from swarmpc.formulation.nlp import NLPSolution
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.model.dynamics import discrete_matrices
 
 __all__ = [
     "LocalShape",
@@ -95,17 +98,17 @@ class QPLocalOptions:
     max_iter: int = 4000
     polish: bool = True
     """OSQP's polishing: solves the KKT system of the guessed active set, so the answer meets its
-    active rows to ~1e-12 (measured: every QP of the benchmark's replay but a handful)."""
+    active rows to machine precision whenever the guess is right (the margin covers the rest)."""
     check_termination: int = 5
-    """OSQP tests for termination every this many iterations (its default 25 made every
-    warm-started solve run 25 iterations; 5 took 5-15, measured in benchmarks/qp_solvers.py)."""
+    """OSQP tests for termination every this many iterations: a warm-started solve that needs only
+    a few iterations stops soon after them instead of running to OSQP's default check interval."""
     margin: float = 1e-5
     """[m] tightening of every separation, plane, workspace and speed row: covers OSQP's primal
     tolerance (~eps_abs + eps_rel * |row| when polishing fails), so d_min itself is never eaten."""
     max_rounds: int = 5
     """Certificate rounds per call. Each round's plan is safe, so a capped loop is an inexact but
     safe local step that the next ADMM iteration continues (its guess carries the certificates);
-    5 and 10 gave the same plans on recorded problems up to the 90th percentile."""
+    a few rounds settle the certificates of most calls, so a higher cap buys little."""
     plan_tol: float = 1e-6
     """[m] stop when the QP's answer moved less than this from its start."""
     certificate_tol: float = 1e-6
@@ -179,22 +182,22 @@ class _Counter:
 
 
 class VariableLayout:
-    """Indices of the QP's variables, in this order: states ``X`` (2d, N+1) and inputs ``U``
-    (d, N) step by step, copies ``C`` (n, d, K) step by step unless pinned, soft slacks of the
-    pair rows (n, K) and of the obstacle rows (n_o, K)."""
+    """Indices of the QP's variables, in this order: the model's states ``X`` (s, N+1) and inputs
+    ``U`` (m, N) step by step, copies ``C`` (n, d, K) step by step unless pinned, soft slacks of
+    the pair rows (n, K) and of the obstacle rows (n_o, K)."""
 
     def __init__(self, s: OCPSettings, shape: LocalShape) -> None:
         d, N, K, n = s.dim, s.horizon, s.num_constrained, shape.copies
         counter = _Counter()
-        self.X = counter.take(N + 1, 2 * d).T
-        self.U = counter.take(N, d).T
+        self.X = counter.take(N + 1, s.model.state_dim).T
+        self.U = counter.take(N, s.model.input_dim).T
         self.copy_start = counter.size
         self.C = np.zeros((n, d, K), int) if shape.pinned else np.transpose(counter.take(n, K, d), (0, 2, 1))
         self.slack_start = counter.size
         self.pair_slack = counter.take(n, K) if shape.pair_collision == "soft" else np.zeros((0, K), int)
         soft_obstacles = s.collision == "soft" and s.obstacles
         self.obstacle_slack = counter.take(len(s.obstacles), K) if soft_obstacles else np.zeros((0, K), int)
-        self.own = self.X[:d, s.first_constrained_step:]
+        self.own = self.X[s.model.position_rows, s.first_constrained_step:]
         self.size = counter.size
 
 
@@ -376,13 +379,14 @@ class LocalQPProblem:
     def linear_cost(self, params: dict[str, Any]) -> np.ndarray:
         """q: goal tracking, consensus (gamma - rho_b z per block) and slack prices, written
         block by block in the layout's order."""
-        s, lay, d, first = self.settings, self.layout, self.settings.dim, self.settings.first_constrained_step
+        s, lay, first = self.settings, self.layout, self.settings.first_constrained_step
         goal = np.asarray(params["goal"], float)
         rho, weight = float(params["rho"]), float(params["owner_weight"])
-        states = np.empty((s.horizon + 1, 2 * d))
+        states = np.empty((s.horizon + 1, s.model.state_dim))
         states[:-1] = -2.0 * s.Q @ goal
         states[-1] = -2.0 * s.Qf @ goal
-        states[first:, :d] += (np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)).T
+        consensus = np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)
+        states[first:, s.model.position_rows] += consensus.T
         q = np.zeros(lay.size)
         q[: states.size] = states.ravel()
         if not self.shape.pinned and self.shape.copies:
@@ -417,9 +421,10 @@ class LocalQPProblem:
     def _dynamics_rows(self, A: TripletMatrix) -> None:
         """x_0 = measured state; x_{k+1} - A x_k - B u_k = 0."""
         s, lay = self.settings, self.layout
-        Ad, Bd = discrete_matrices(s.dim, s.dt, s.discretization)  # type: ignore[arg-type]
-        A.add(self._block("init", 2 * s.dim, lower=0.0, upper=0.0), lay.X[:, 0], 1.0)
-        dyn = self._block("dyn", s.horizon, 2 * s.dim, lower=0.0, upper=0.0).T  # (2d, N)
+        Ad, Bd = linear_matrices(s)
+        n = s.model.state_dim
+        A.add(self._block("init", n, lower=0.0, upper=0.0), lay.X[:, 0], 1.0)
+        dyn = self._block("dyn", s.horizon, n, lower=0.0, upper=0.0).T  # (n, N)
         A.add(dyn, lay.X[:, 1:], 1.0)
         for i, j in zip(*np.nonzero(Ad)):
             A.add(dyn[i], lay.X[j, :-1], -Ad[i, j])
@@ -431,14 +436,19 @@ class LocalQPProblem:
         s, lay, d = self.settings, self.layout, self.settings.dim
         N, K = s.horizon, s.num_constrained
         if s.accel is not None:
-            A.add(self._block("accel", N, d, lower=-s.accel, upper=s.accel).T, lay.U, 1.0)
+            lower, upper = s.model.input_bounds(s.accel, s.speed)
+            A.add(self._block("accel", N, s.model.input_dim, lower=lower, upper=upper).T, lay.U, 1.0)
         if s.lower is not None and s.upper is not None:
             margin = self.options.margin
             rows = self._block("workspace", K, d, lower=s.lower + margin, upper=s.upper - margin)
             A.add(rows.T, lay.own, 1.0)
         if s.speed is not None:
+            # a_f' v(x_k) over the state entries the velocity depends on (v linear in the state)
+            velocity = s.model.velocity(np.eye(s.model.state_dim))  # (s, d): row j is v(e_j)
+            support = np.flatnonzero(np.any(velocity != 0, axis=1))
+            normals = self.speed_normals @ velocity[support].T  # (F, entries)
             speed = self._block("speed", N, len(self.speed_normals), lower=-np.inf, upper=self.speed_bound)
-            A.add(speed[:, :, None], lay.X[d:, 1:].T[:, None, :], self.speed_normals[None])
+            A.add(speed[:, :, None], lay.X[support, 1:].T[:, None, :], normals[None])
 
     def _collision_rows(self, A: TripletMatrix) -> None:
         """Obstacle, pair and plane rows (normals set per call), soft slacks and their signs."""
@@ -582,10 +592,19 @@ class LocalQP:
         return self.backend.solve(start, y)
 
 
+def linear_matrices(s: OCPSettings) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) of the settings' agent model; ValueError when it is not linear (the QP local step
+    needs linear dynamics)."""
+    matrices = s.model.linear_matrices()
+    if matrices is None:
+        raise ValueError(f"the QP local step needs a linear agent model, not {s.model.name}")
+    return matrices
+
+
 def rollout_matrices(s: OCPSettings) -> tuple[np.ndarray, np.ndarray]:
-    """(Phi, Gamma) with vec(X) = Phi x0 + Gamma vec(U) (column-major, states (2d, N+1), inputs
-    (d, N)) for the discrete dynamics: the exact rollout as one product."""
-    A, B = discrete_matrices(s.dim, s.dt, s.discretization)  # type: ignore[arg-type]
+    """(Phi, Gamma) with vec(X) = Phi x0 + Gamma vec(U) (column-major, states (s, N+1), inputs
+    (m, N)) for the discrete dynamics: the exact rollout as one product."""
+    A, B = linear_matrices(s)
     n, m, N = A.shape[0], B.shape[1], s.horizon
     Phi = np.zeros(((N + 1) * n, n))
     Gamma = np.zeros(((N + 1) * n, N * m))
@@ -602,12 +621,12 @@ def rollout_matrices(s: OCPSettings) -> tuple[np.ndarray, np.ndarray]:
 def local_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: OCPSettings, copies: int) -> float:
     """The NLP objective of :func:`swarmpc.formulation.ocp.build_local` at named blocks (X, U,
     C{c}, A{c}, A_o{n}): tracking cost + consensus terms + kappa * slacks."""
-    d, first = s.dim, s.first_constrained_step
+    first = s.first_constrained_step
     X, U, goal = blocks["X"], blocks["U"], np.asarray(params["goal"], float)
     err = X - goal[:, None]
     cost = float(np.sum((s.Q @ err[:, :-1]) * err[:, :-1]) + err[:, -1] @ s.Qf @ err[:, -1] + np.sum((s.R @ U) * U))
     rho, weight = float(params["rho"]), float(params["owner_weight"])
-    diff = X[:d, first:] - np.asarray(params["Z"], float)
+    diff = X[s.model.position_rows, first:] - np.asarray(params["Z"], float)
     cost += float(np.sum(np.asarray(params["Y"], float) * diff) + 0.5 * rho * weight * np.sum(diff * diff))
     if copies:
         diff = np.array([blocks[f"C{c}"] for c in range(copies)]) - np.array([params[f"Z{c}"] for c in range(copies)])
@@ -764,19 +783,13 @@ class SequentialLocalQP:
         return answer, x, lin, converged
 
     def _fallback_plans(self, params: dict[str, Any]) -> list[np.ndarray]:
-        """State trajectories (2d, N+1) to take certificates from when the guess's fail: the
-        measured state coasting (no input), and braking as hard as the input box allows."""
-        s, d = self.settings, self.settings.dim
+        """State trajectories (s, N+1) to take certificates from when the guess's fail: the
+        measured state coasting (no input), and the model's braking plan
+        (:meth:`~swarmpc.model.agent_model.AgentModel.braking_inputs`) within the input box."""
+        s, model = self.settings, self.settings.model
         state = np.asarray(params["x0"], float)
-        coast, _ = self.rebuild(state, np.zeros((d, s.horizon)))
-        brake = np.empty_like(coast)
-        brake[:, 0] = state
-        A, B = discrete_matrices(d, s.dt, s.discretization)  # type: ignore[arg-type]
-        for k in range(s.horizon):
-            u = -brake[d:, k] / s.dt
-            if s.accel is not None:
-                u = np.clip(u, -s.accel, s.accel)
-            brake[:, k + 1] = A @ brake[:, k] + B @ u
+        coast, _ = self.rebuild(state, np.zeros((model.input_dim, s.horizon)))
+        brake = model.rollout(state, model.braking_inputs(state, s.horizon, s.accel)).T
         return [coast, brake]
 
     def _settled(self, old: Linearisation, new: Linearisation, own: np.ndarray, copies: np.ndarray) -> bool:
@@ -802,11 +815,12 @@ class SequentialLocalQP:
                            iterations=iterations, solve_time=wall)
 
     def rebuild(self, state: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Inputs (d, N) clipped to their box and the states (2d, N+1) they drive from ``state``:
+        """Inputs (m, N) clipped to their box and the states (s, N+1) they drive from ``state``:
         the applied plan meets the dynamics and the input limits exactly."""
         s = self.settings
-        U = np.clip(inputs, -s.accel[:, None], s.accel[:, None]) if s.accel is not None else inputs.copy()
-        X = (self.transition @ state + self.response @ U.ravel(order="F")).reshape(s.horizon + 1, 2 * s.dim).T
+        lower, upper = s.model.input_bounds(s.accel, s.speed)
+        U = np.clip(inputs, lower[:, None], upper[:, None]) if s.accel is not None else inputs.copy()
+        X = (self.transition @ state + self.response @ U.ravel(order="F")).reshape(s.horizon + 1, s.model.state_dim).T
         return X, U
 
     def _result(
@@ -818,7 +832,7 @@ class SequentialLocalQP:
         or by the best certificates of the rebuilt plan if those do not clear it."""
         s, lay, n = self.settings, self.problem.layout, self.shape.copies
         X, U = self.rebuild(np.asarray(params["x0"], float), x[lay.U])
-        own = X[: s.dim, s.first_constrained_step:]
+        own = X[s.model.position_rows, s.first_constrained_step:]
         copies = pinned if pinned is not None else x[lay.C]
         delta = copy_deltas(params["delta"], n, s.dim)
         final = self.certify.rows(own, copies, delta, lin.pair_lam, lin.obstacle_lam)
@@ -855,19 +869,19 @@ class SequentialLocalQP:
         (>= d_min) by the values of dual-feasible certificates (lower bounds on the distances),
         planes, workspace and speed by direct evaluation. Inputs are within their box and the
         states follow the dynamics by construction (:meth:`rebuild`)."""
-        s, d, first = self.settings, self.settings.dim, self.settings.first_constrained_step
+        s, first = self.settings, self.settings.first_constrained_step
         gaps = [0.0]
         if self.shape.pair_collision == "hard" and lin.pair_value.size:
             gaps.append(float(np.max(s.d_min - lin.pair_value)))
         if s.collision == "hard" and lin.obstacle_value.size:
             gaps.append(float(np.max(s.d_min - lin.obstacle_value)))
-        own = X[:d, first:]
+        own = X[s.model.position_rows, first:]
         for p in range(self.shape.planes):
             gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
         if s.lower is not None and s.upper is not None:
             gaps += [float(np.max(s.lower[:, None] - own)), float(np.max(own - s.upper[:, None]))]
         if s.speed is not None:
-            gaps.append(float(np.max(np.linalg.norm(X[d:, 1:], axis=0)) - s.speed))
+            gaps.append(float(np.max(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1)) - s.speed))
         return max(gaps)
 
 

@@ -43,6 +43,8 @@ from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
+from swarmpc.model.agent_model import AgentModel, make_model
+
 __all__ = ["RRTGuess", "plan_path", "straight_line_guess", "time_parametrize"]
 
 _PLANNERS = ("rrtconnect", "rrt")
@@ -298,65 +300,82 @@ def time_parametrize(
     dt: float,
     horizon: int,
     speed: float,
+    model: AgentModel | None = None,
 ) -> np.ndarray:
     """Turn a waypoint path into a state guess moving along it at constant speed.
 
     Parameters
     ----------
     path : (n, d) array
-        Waypoints; if ``path[0]`` is not ``start_state[:d]`` the current position is prepended.
-    start_state : (2d,) array
-        Current state ``[position, velocity]``; it is row 0 of the result, unchanged.
+        Waypoints; if ``path[0]`` is not the current position it is prepended.
+    start_state : (s,) array
+        Current state of ``model``; it is row 0 of the result, unchanged.
     dt : float
         Sampling time (> 0).
     horizon : int
         Number of steps N (>= 0); the result has N + 1 rows.
     speed : float
         Constant speed along the path (>= 0).
+    model : AgentModel, optional
+        The agent model whose states the guess is made of (:meth:`AgentModel.state_at` of each
+        position and velocity); None: the double integrator, states ``[position, velocity]``.
 
     Returns
     -------
-    (horizon + 1, 2d) array
-        Row k is the position at arc length ``min(speed * k * dt, L)`` with velocity
+    (horizon + 1, s) array
+        Row k is the state at the position at arc length ``min(speed * k * dt, L)`` with velocity
         ``speed`` times the unit tangent, and zero velocity once the end of the path is
         reached (the position then stays at the last waypoint). Consecutive positions are
         therefore at most ``speed * dt`` apart.
     """
     path = np.atleast_2d(np.asarray(path, dtype=float))
     dim = path.shape[1]
-    state = np.asarray(start_state, dtype=float).reshape(-1)
-    if state.size != 2 * dim:
-        raise ValueError(f"start_state must have length {2 * dim} for a path of dimension {dim}")
-    if path.shape[0] == 0:
-        raise ValueError("path must have at least one waypoint")
     dt, speed = float(dt), float(speed)
     horizon = operator.index(horizon)
     if not dt > 0 or horizon < 0 or not speed >= 0:
         raise ValueError("need dt > 0, horizon >= 0 and speed >= 0")
+    model = _model_or_default(model, dim, dt)
+    state = np.asarray(start_state, dtype=float).reshape(-1)
+    if state.size != model.state_dim:
+        raise ValueError(f"start_state must have length {model.state_dim} for a path of dimension {dim}")
+    if path.shape[0] == 0:
+        raise ValueError("path must have at least one waypoint")
+    positions, velocities = _along_path(np.vstack([model.position(state), path]), dt, horizon, speed)
+    out = model.state_at(positions, velocities)
+    out[0] = state
+    return out
 
-    points = np.vstack([state[:dim], path])
+
+def _model_or_default(model: AgentModel | None, dim: int, dt: float) -> AgentModel:
+    """``model``, or the double integrator (states [position, velocity]) when None."""
+    return model if model is not None else make_model("double_integrator", dim, dt)
+
+
+def _along_path(points: np.ndarray, dt: float, horizon: int, speed: float) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and velocities (horizon + 1, d) at constant ``speed`` along the polyline ``points``
+    from its first point (see :func:`time_parametrize`)."""
     seg = np.diff(points, axis=0)
     lengths = np.linalg.norm(seg, axis=1)
     keep = lengths > _SAME_POINT  # drop repeated points (incl. path[0] == current position)
     seg, lengths = seg[keep], lengths[keep]
     points = np.vstack([points[:1], points[1:][keep]])
 
-    out = np.zeros((horizon + 1, 2 * dim))
+    positions = np.zeros((horizon + 1, points.shape[1]))
+    velocities = np.zeros_like(positions)
     travelled = speed * dt * np.arange(horizon + 1)
     if seg.shape[0] == 0:
-        out[:, :dim] = points[0]
+        positions[:] = points[0]
     else:
         cum = np.concatenate([[0.0], np.cumsum(lengths)])
         done = travelled >= cum[-1]
         arc = np.minimum(travelled, cum[-1])
         idx = np.clip(np.searchsorted(cum, arc, side="right") - 1, 0, seg.shape[0] - 1)
         frac = (arc - cum[idx]) / lengths[idx]
-        out[:, :dim] = points[idx] + frac[:, None] * seg[idx]
-        out[:, dim:] = speed * seg[idx] / lengths[idx, None]
-        out[done, :dim] = points[-1]
-        out[done, dim:] = 0.0
-    out[0] = state
-    return out
+        positions[:] = points[idx] + frac[:, None] * seg[idx]
+        velocities[:] = speed * seg[idx] / lengths[idx, None]
+        positions[done] = points[-1]
+        velocities[done] = 0.0
+    return positions, velocities
 
 
 def straight_line_guess(
@@ -365,16 +384,15 @@ def straight_line_guess(
     dt: float,
     horizon: int,
     speed: float,
+    model: AgentModel | None = None,
 ) -> np.ndarray:
-    """State guess (horizon + 1, 2d) along the straight line to the goal, ignoring obstacles.
+    """State guess (horizon + 1, s) along the straight line to the goal, ignoring obstacles.
 
-    Same shape and conventions as :func:`time_parametrize` (row 0 is the real state), so it is
-    a drop-in fallback when planning fails.
+    Same shape and conventions as :func:`time_parametrize` (row 0 is the real state, ``model``
+    None the double integrator), so it is a drop-in fallback when planning fails.
     """
-    state = np.asarray(start_state, dtype=float).reshape(-1)
     goal = np.asarray(goal_pos, dtype=float).reshape(1, -1)
-    path = np.vstack([state[: goal.shape[1]], goal[0]])
-    return time_parametrize(path, state, dt, horizon, speed)
+    return time_parametrize(goal, start_state, dt, horizon, speed, model)  # from the current position
 
 
 class RRTGuess:
@@ -471,8 +489,8 @@ class RRTGuess:
         seed = _derived_seed(self._seed, agent_id, counter)
         path = _plan(self._validity, pos, goal, seed, self._time_budget, self._planner)
         if path is None and self._validity.point_valid(pos) and self._validity.point_valid(goal):
-            # Valid endpoints, so the wall-clock budget ran out, which on a loaded machine happens
-            # to plans that take ~1 ms on an idle core: one retry, same seed, RETRY_FACTOR x budget.
+            # Valid endpoints, so the wall-clock budget ran out, which a loaded machine can do to a
+            # plan that is quick on an idle core: one retry, same seed, RETRY_FACTOR x budget.
             path = _plan(self._validity, pos, goal, seed, _RETRY_FACTOR * self._time_budget, self._planner)
         if path is None:
             self._failed += 1
@@ -513,15 +531,18 @@ class RRTGuess:
         dt: float,
         horizon: int,
         speed: float,
+        model: AgentModel | None = None,
     ) -> np.ndarray | None:
-        """State guess (horizon + 1, 2d) along the agent's path, or None if planning failed.
+        """State guess (horizon + 1, s) of ``model`` (None: the double integrator) along the
+        agent's path, or None if planning failed.
 
         Row 0 is ``start_state``; fall back to :func:`straight_line_guess` on None.
         """
         state = np.asarray(start_state, dtype=float).reshape(-1)
-        if state.size != 2 * self._validity.dim:
-            raise ValueError(f"start_state must have length {2 * self._validity.dim}")
-        path = self.path_for(agent_id, state[: self._validity.dim], goal_pos)
+        model = _model_or_default(model, self._validity.dim, dt)
+        if state.size != model.state_dim:
+            raise ValueError(f"start_state must have length {model.state_dim}")
+        path = self.path_for(agent_id, model.position(state), goal_pos)
         if path is None:
             return None
-        return time_parametrize(path, state, dt, horizon, speed)
+        return time_parametrize(path, state, dt, horizon, speed, model)

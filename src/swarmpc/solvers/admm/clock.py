@@ -1,0 +1,109 @@
+"""The compute on an MPC step's critical path, measured per agent where the agent runs.
+
+:class:`TimedAgent` makes each answer carry the wall time of the local step that produced it
+(:class:`~swarmpc.solvers.admm.messages.TimedResult`); :class:`StepClock` adds up the step's
+critical path from those and decides whether another ADMM iteration fits the deadline.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import fields
+from typing import Any
+
+from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, TimedResult
+from swarmpc.solvers.executors import Executor
+
+
+class TimedAgent:
+    """An agent whose answers carry the wall time of its whole local step (:class:`TimedResult`).
+
+    The critical path (:class:`StepClock`) needs each agent's compute per request, measured where
+    the agent runs (a worker process under the process executor); executors pass answers through
+    unopened, so the answer carries it. Every other attribute is the wrapped agent's, read and
+    written through: code that reaches into an executor's agents meets the agent itself.
+    """
+
+    def __init__(self, agent: Any) -> None:
+        object.__setattr__(self, "_inner", agent)
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "_inner":  # not set yet (a copy or unpickling in progress): no recursion
+            raise AttributeError(name)
+        return getattr(self._inner, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._inner, name, value)
+
+    def solve(self, request: LocalRequest) -> TimedResult:
+        started = time.perf_counter()
+        result = self._inner.solve(request)
+        elapsed = time.perf_counter() - started
+        return TimedResult(**{f.name: getattr(result, f.name) for f in fields(LocalResult)}, call_time=elapsed)
+
+
+class TimedAgentFactory:
+    """Picklable: the agents ``factory`` makes, each wrapped in a :class:`TimedAgent`."""
+
+    def __init__(self, factory: Callable[[int], Any]) -> None:
+        self.factory = factory
+
+    def __call__(self, agent: int) -> TimedAgent:
+        return TimedAgent(self.factory(agent))
+
+
+class StepClock:
+    """The compute on one MPC step's critical path, and the anytime stop at the step's deadline.
+
+    The critical path is what the step would take with one core per agent and no transport
+    latency: the coordinator's own work (everything in :meth:`ADMMSolver.plan` outside the agents'
+    local steps) plus, for every batch of local steps it waits for, the slowest agent's local step
+    (:attr:`TimedResult.call_time`; ``solve_time`` for answers of executors that do not ask the
+    agents themselves). It is measured as the step's wall time less, per batch, the batch's wall
+    time beyond its slowest agent: under the serial executor the other agents' steps, under a
+    process executor the queueing and transport. The repair pass hands its agents over one at a
+    time, so its sequential re-plans add up in full.
+
+    Parameters
+    ----------
+    deadline : float or None
+        Critical-path budget of the step [s]; None: no deadline.
+    clock : callable
+        The time in seconds (monotonic); the step starts when the clock object is made.
+    """
+
+    def __init__(self, deadline: float | None = None, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.deadline = deadline
+        self.clock = clock
+        self.started = clock()
+        self.stopped = False
+        """True once :meth:`next_iteration` refused an iteration for the deadline."""
+        self._overlap = 0.0
+        self._iteration_began: float | None = None
+
+    def elapsed(self) -> tuple[float, float]:
+        """(wall time, critical path) of the step so far [s], read at one instant."""
+        wall = self.clock() - self.started
+        return wall, wall - self._overlap
+
+    def solve(self, executor: Executor, requests: Sequence[LocalRequest]) -> list[LocalResult]:
+        """``executor``'s answers to ``requests``; the batch counts as its slowest agent's step."""
+        began = self.clock()
+        results = executor.solve(requests)
+        batch = self.clock() - began
+        slowest = max((getattr(r, "call_time", r.solve_time) for r in results), default=0.0)
+        self._overlap += max(batch - slowest, 0.0)
+        return results
+
+    def next_iteration(self) -> bool:
+        """Whether to start another ADMM iteration. No (and :attr:`stopped`) when the critical path
+        so far plus the last iteration's share of it would exceed the deadline: the last iteration
+        is the estimate of the next. The first iteration always runs: without it there is no plan
+        to make safe."""
+        now = self.elapsed()[1]
+        last, self._iteration_began = self._iteration_began, now
+        if last is None or self.deadline is None or now + (now - last) <= self.deadline:
+            return True
+        self.stopped = True
+        return False

@@ -1,0 +1,118 @@
+"""ADMM's parameters (:class:`ADMMConfig`) and the coupling defaults by collision form."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+DEFAULT_COUPLING = {"hard": (0.2, 0.1), "soft": (0.5, 0.0)}
+"""(coupling margin [m], closing time [s]) by collision form when the scenario leaves the margin
+open. Hard constraints afford a small margin: a pair coupled too late is caught by the conflict
+check after convergence, before any plan is applied, and costs an iteration. The closing-time
+term lets pairs that approach fast (head-on swaps) couple a little earlier. Soft constraints do
+not afford a small margin: a late pair's slack is paid for in the cost and no check undoes it
+(evidence: docs/lab/admm.md#coupling-margin)."""
+
+
+def default_coupling(collision: str) -> tuple[float, float]:
+    """(coupling_margin, closing_time) for hard or soft collision constraints (:data:`DEFAULT_COUPLING`)."""
+    return DEFAULT_COUPLING[collision]
+
+
+@dataclass(frozen=True)
+class ADMMConfig:
+    """ADMM parameters (see the scenario's ``solver`` block); checked when made (ValueError)."""
+
+    rho: float = 10.0
+    max_iter: int = 100
+    tol: float = 1e-3
+    adaptive_rho: bool = False
+    dynamic_copies: bool = False
+    owner_weight: float = 5.0
+    repair: bool = True
+    coupling_margin: float | None = 0.5
+    closing_time: float = 0.0
+    """Seconds of closing speed added to the coupling margin per pair: pairs whose guesses approach
+    each other at relative speed v (inf-norm, largest over the horizon) couple within
+    max(Delta_ij) + d_min + coupling_margin + closing_time * v."""
+    stall_window: int | None = 5
+    stall_rho_factor: float | None = 2.0
+    rho_bounds: tuple[float, float] = (1e-2, 1e3)
+    seed_duals: bool = True
+    carry_multipliers: Literal["stable", "always", "never"] = "stable"
+    """Which consensus multipliers a new MPC step starts from (shifted by one step) rather than
+    from zero. "always": every one (the paper). "never": none. "stable" (default): those of the
+    blocks whose agent has the same neighbours as at the end of the previous step, for every
+    holder of the block alike. A block's multipliers sum to zero (the plain average is then
+    ADMM's z-update) only while nobody drops a copy of it; a multiplier kept after its
+    counterpart was dropped acts as a constant force that can hold agents at rest short of free
+    goals (evidence: docs/lab/admm.md#multipliers-across-steps)."""
+    warm_start: bool = True
+    """Start each ADMM iteration's local solve after the first of an MPC step from the previous
+    iterate's multipliers too, not only its primal point (IPOPT warm start): the next iterate's
+    problem differs only in its consensus targets, so IPOPT needs fewer iterations to the same
+    solution (evidence: docs/lab/admm.md#multiplier-warm-start)."""
+    local: Literal["qp", "ipopt"] = "ipopt"
+    """The agents' local step. "ipopt": the OBCA NLP by IPOPT (the reference). "qp": the convex
+    local step of :mod:`swarmpc.solvers.qp_local` (OBCA certificates held fixed per QP, OSQP, a
+    short certificate loop), whose answers are safe as they stand; any call it fails is solved by
+    IPOPT instead (:class:`~swarmpc.solvers.admm.ladders.QPLocalSolverLadder`, counted in
+    ``LocalResult.local_fallbacks``). Needs free copies (``dynamic_copies`` False)."""
+    relaxation: float = 1.0
+    """Over-relaxation alpha of the consensus (Boyd et al. sec. 3.4.3): the average and the
+    multipliers use alpha * v + (1 - alpha) * z_previous in place of each block's answer v.
+    1: plain ADMM (the paper); the fixed points are the same for any alpha in (0, 2)
+    (evidence: docs/lab/admm.md#over-relaxation)."""
+    reuse_tol: float = 1e-4
+    """Within an MPC step, an agent whose consensus targets (z - gamma / rho_b, per block) all moved
+    less than this [m] since its last solve, at the same penalty and neighbours, sends its last
+    answer again instead of solving: that answer solves a problem whose targets differ by at most
+    this much (0: always solve). An inexact local step, far below the consensus tolerance
+    (evidence: docs/lab/admm.md#answer-reuse)."""
+    plane_margin: float | None = None
+    """None: every coupled pair holds copies of each other (OBCA and consensus). A margin [m]: a
+    coupled pair whose guesses stay at least d_min + plane_margin beyond its Delta_ij box on one axis
+    at every constrained step is kept apart by a fixed separating plane per step instead, each
+    agent keeping to its side with half the spare room
+    (:func:`~swarmpc.solvers.admm.graph.separating_planes`): no copies, no consensus, no
+    iterations for that pair. A plane pair whose plans break the separation is coupled with
+    copies (evidence: docs/lab/admm.md#separating-planes)."""
+    deadline: float | None = None
+    """Critical-path budget of one MPC step [s] (None: none): an iteration that would overrun it is
+    not started and the step ends through the repair pass
+    (:class:`~swarmpc.solvers.admm.clock.StepClock`, :meth:`ADMMSolver.plan`)."""
+
+    def __post_init__(self) -> None:
+        problem = _first_problem(self)
+        if problem is not None:
+            raise ValueError(f"ADMMConfig.{problem}")
+
+
+def _first_problem(cfg: ADMMConfig) -> str | None:
+    """The first field of ``cfg`` outside its range, as ``name: what is wrong``; None when valid."""
+    positive: dict[str, float] = {"rho": cfg.rho, "max_iter": cfg.max_iter, "tol": cfg.tol,
+                                  "owner_weight": cfg.owner_weight}
+    for name, value in positive.items():
+        if not value > 0:
+            return f"{name}: must be > 0, got {value!r}"
+    non_negative: dict[str, float | None] = {"coupling_margin": cfg.coupling_margin, "plane_margin": cfg.plane_margin,
+                                             "closing_time": cfg.closing_time, "reuse_tol": cfg.reuse_tol}
+    for name, optional in non_negative.items():
+        if optional is not None and not optional >= 0:
+            return f"{name}: must be >= 0, got {optional!r}"
+    if not 0 < cfg.relaxation < 2:
+        return f"relaxation: must be in (0, 2), got {cfg.relaxation!r}"
+    if cfg.deadline is not None and not cfg.deadline > 0:
+        return f"deadline: must be > 0 or None, got {cfg.deadline!r}"
+    if cfg.stall_window is not None and cfg.stall_window < 1:
+        return f"stall_window: must be >= 1 or None, got {cfg.stall_window!r}"
+    if cfg.stall_rho_factor is not None and not cfg.stall_rho_factor > 1:
+        return f"stall_rho_factor: must be > 1 or None, got {cfg.stall_rho_factor!r}"
+    low, high = cfg.rho_bounds
+    if not 0 < low <= high:
+        return f"rho_bounds: must be 0 < low <= high, got {cfg.rho_bounds!r}"
+    if cfg.carry_multipliers not in ("stable", "always", "never"):
+        return f"carry_multipliers: expected stable, always or never, got {cfg.carry_multipliers!r}"
+    if cfg.local not in ("qp", "ipopt"):
+        return f"local: expected qp or ipopt, got {cfg.local!r}"
+    return None

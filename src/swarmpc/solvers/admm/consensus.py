@@ -1,0 +1,170 @@
+"""The coordinator's side of consensus: averaging, residuals, the stop rule and the penalty schedule.
+
+The consensus z_j of agent j's positions is the rho_b-weighted mean of every copy of them, its
+own plan included (weight ``owner_weight``); the RMS primal residual ||v - z|| and the RMS dual
+residual rho_b ||z - z_prev|| (Boyd et al. 2011 sec. 3.3, with block penalties) decide when to
+stop. The penalty rho stiffens when the primal residual stalls and, with ``adaptive_rho``,
+balances the two residuals.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from swarmpc.solvers.admm.config import ADMMConfig
+from swarmpc.solvers.admm.messages import LocalResult
+
+
+@dataclass(frozen=True, eq=False)
+class Carryover:
+    """What the next MPC step starts from: the plans flown (its z, shifted), the final coupling
+    (which multipliers carry over) and the penalty (with ``adaptive_rho``)."""
+
+    z: np.ndarray
+    """(M, d, K) the own positions of the plans applied."""
+    neighbours: tuple[tuple[int, ...], ...]
+    rho: float
+
+
+def starting_consensus(guess: np.ndarray, first: int, dim: int, previous: Carryover | None) -> np.ndarray:
+    """z (M, d, K) at the start of a step: the previous step's applied plans shifted by one step
+    (after a repair pass the last average is nobody's plan), or the guess's positions at the
+    constrained steps from ``first`` on."""
+    if previous is None:
+        return np.transpose(guess[:, first:, :dim], (0, 2, 1)).copy()
+    return np.concatenate([previous.z[:, :, 1:], previous.z[:, :, -1:]], axis=2)
+
+
+def carried_blocks(
+    mode: str, neighbours: Sequence[tuple[int, ...]], previous: Carryover | None,
+) -> list[tuple[bool, ...]]:
+    """Per agent, which of its multipliers (own block, then each neighbour's) the new step
+    carries over (see ``ADMMConfig.carry_multipliers``); every holder of a block decides
+    alike, so each block's multipliers keep summing to zero."""
+    if mode == "always":
+        return [(True,) * (1 + len(n)) for n in neighbours]
+    if mode == "never" or previous is None:
+        return [(False,) * (1 + len(n)) for n in neighbours]
+    stable = [n == p for n, p in zip(neighbours, previous.neighbours, strict=True)]
+    return [(stable[i], *(stable[j] for j in n)) for i, n in enumerate(neighbours)]
+
+
+def average(
+    results: Sequence[LocalResult], neighbours: Sequence[tuple[int, ...]], owner_weight: float,
+    relaxation: float, z_previous: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Consensus positions z (M, d, K) and the own-block weights (M,).
+
+    z_j is the rho_b-weighted mean of every copy of agent j: its own plan (weight
+    ``owner_weight``, or 1 for an agent nobody couples with, whose z is then its plan) and the
+    copies its neighbours hold (weight 1), each over-relaxed towards ``z_previous`` when
+    ``relaxation`` is not 1 (an agent nobody couples with keeps its plan as z).
+    """
+    alpha = relaxation
+    previous = z_previous if alpha != 1.0 else None  # None: no over-relaxation
+    own = np.array([r.own for r in results])
+    weights = np.array([owner_weight if n else 1.0 for n in neighbours])
+    coupled = np.array([bool(n) for n in neighbours])
+    relaxed_own = own
+    if previous is not None:
+        relaxed_own = np.where(coupled[:, None, None], alpha * own + (1.0 - alpha) * previous, own)
+    total = weights[:, None, None] * relaxed_own
+    count = weights.copy()
+    for r in results:
+        for slot, j in enumerate(neighbours[r.agent]):
+            copy = r.copies[slot]
+            total[j] += copy if previous is None else alpha * copy + (1.0 - alpha) * previous[j]
+            count[j] += 1
+    return total / count[:, None, None], weights
+
+
+def primal_residual(results: Sequence[LocalResult], neighbours: Sequence[tuple[int, ...]], z: np.ndarray) -> float:
+    """RMS of v - z over every consensus block (own plans and copies)."""
+    squared = 0.0
+    entries = 0
+    for r in results:
+        squared += float(np.sum((r.own - z[r.agent]) ** 2))
+        entries += r.own.size
+        for slot, j in enumerate(neighbours[r.agent]):
+            squared += float(np.sum((r.copies[slot] - z[j]) ** 2))
+            entries += r.copies[slot].size
+    return float(np.sqrt(squared / max(entries, 1)))
+
+
+def dual_residual(change: np.ndarray, weights: np.ndarray, neighbours: Sequence[tuple[int, ...]], rho: float) -> float:
+    """RMS of rho_b (z - z_prev) over every consensus block (``change``: z - z_prev; block
+    penalties rho_b: rho * owner_weight for own blocks, rho for copies). Agents nobody couples
+    with hold no consensus block and do not count."""
+    own = np.array([bool(n) for n in neighbours])
+    copies = np.array([sum(j in n for n in neighbours) for j in range(len(neighbours))])
+    per_agent = (weights**2 * own + copies) * np.sum(change**2, axis=(1, 2))
+    entries = (own + copies).sum() * change[0].size
+    return float(rho * np.sqrt(per_agent.sum() / max(entries, 1)))
+
+
+def consensus_met(primal: float, dual: float, rho: float, config: ADMMConfig) -> bool:
+    """The paper's stop: both residuals within ``tol``. A raised rho scales the dual residual, not
+    the motion of z it measures: it is compared at the step's starting penalty, or raising rho
+    would itself block convergence."""
+    return primal <= config.tol and dual <= config.tol * rho / config.rho
+
+
+@dataclass
+class Residuals:
+    """The step's history, one entry per ADMM iteration: primal and dual residuals and the rho used."""
+
+    primal: list[float] = field(default_factory=list)
+    dual: list[float] = field(default_factory=list)
+    rho: list[float] = field(default_factory=list)
+
+    def add(self, primal: float, dual: float, rho: float) -> None:
+        self.primal.append(primal)
+        self.dual.append(float(dual))
+        self.rho.append(rho)
+
+    def __len__(self) -> int:
+        return len(self.primal)
+
+
+def stalled(primal: Sequence[float], window: int | None) -> bool:
+    """No 10% progress of the primal residual over the last ``window`` iterations: more
+    iterations will not reach consensus, so stop and let the repair pass finish the step."""
+    if window is None or len(primal) <= window:
+        return False
+    return min(primal[-window:]) > 0.9 * min(primal[:-window])
+
+
+class PenaltySchedule:
+    """The penalty rho of one MPC step: ``rho`` for the next iteration, ``previous`` the one the
+    last iteration used (the agents' multiplier step reads it)."""
+
+    def __init__(self, config: ADMMConfig, rho: float) -> None:
+        self.config = config
+        self.rho = rho
+        self.previous = rho
+        self._window_start = 0
+        """Where the stall window starts: the iteration after the last stiffening."""
+
+    def advance(self, primal: Sequence[float], dual: float) -> bool:
+        """Set rho for the next iteration after one with residuals ``primal[-1]`` and ``dual``;
+        True when the iterations should stop instead. A stalled primal residual (:func:`stalled`)
+        stiffens rho and restarts the window, or stops the iterations when rho cannot grow;
+        ``adaptive_rho`` then balances the residuals."""
+        cfg, rho, r_norm = self.config, self.rho, primal[-1]
+        self.previous = rho
+        if stalled(primal[self._window_start:], cfg.stall_window):
+            if cfg.stall_rho_factor is None or rho >= cfg.rho_bounds[1]:
+                return True
+            # a stalled nonconvex ADMM often settles once the penalty is stiffer
+            rho = min(rho * cfg.stall_rho_factor, cfg.rho_bounds[1])
+            self._window_start = len(primal)
+        if cfg.adaptive_rho:
+            if r_norm > 10 * dual:
+                rho = min(rho * 2, cfg.rho_bounds[1])
+            elif dual > 10 * r_norm:
+                rho = max(rho / 2, cfg.rho_bounds[0])
+        self.rho = rho
+        return False

@@ -1,0 +1,165 @@
+"""What the coordinator and the agents exchange, and how the coordinator poses a request.
+
+An agent sees only its :class:`LocalRequest` and answers with a :class:`LocalResult` (its own
+positions, its copies of its neighbours' positions, and its plan); multipliers and earlier
+solutions stay inside the agent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from swarmpc.formulation.nlp import NLPSolution
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.solvers.admm.config import ADMMConfig
+
+if TYPE_CHECKING:
+    from swarmpc.solvers.admm.graph import CouplingGraph
+
+KEPT_PLAN = "kept_verified_current_plan"
+"""Status of a repair whose solves failed but whose current plan satisfies every constraint."""
+
+
+@dataclass(frozen=True)
+class LocalRequest:
+    """What the coordinator hands agent ``agent`` for one local step."""
+
+    agent: int
+    state: np.ndarray
+    goal: np.ndarray
+    delta: np.ndarray
+    """(n, d) Delta_ij of the pair with each neighbour, rows in the order of ``neighbours`` (a (d,)
+    value is taken for every neighbour); see :attr:`pair_deltas`."""
+    rho: float
+    rho_previous: float
+    owner_weight: float
+    new_step: bool
+    z_own: np.ndarray
+    neighbours: tuple[int, ...]
+    z_neighbours: np.ndarray
+    neighbour_states: np.ndarray
+    guess: np.ndarray
+    neighbour_plans: tuple[np.ndarray, np.ndarray] | None = None
+    reuse_tol: float = 0.0
+    """See ``ADMMConfig.reuse_tol``."""
+    relaxation: float = 1.0
+    """See ``ADMMConfig.relaxation``."""
+    carry: tuple[bool, ...] = ()
+    """At a new step: per block (own, then each neighbour's), whether its multiplier is carried
+    over (shifted) instead of restarting from zero; missing entries restart."""
+    rescue: bool = False
+    """A repair's last attempt: if the hard solves fail and the fallback plan breaks the separation
+    from the pinned plans, fly the least-violating plan instead (see ``LocalAgent._rescue``)."""
+    plane_normals: np.ndarray | None = None
+    """(P, d, K) unit normals of the separating planes the agent's positions keep to (None: none);
+    see :func:`~swarmpc.solvers.admm.graph.separating_planes`."""
+    plane_offsets: np.ndarray | None = None
+    """(P, K) offsets of those planes: normal' p_k >= offset_k at each constrained step k."""
+
+    @property
+    def num_planes(self) -> int:
+        return 0 if self.plane_normals is None else len(self.plane_normals)
+
+    @property
+    def pair_deltas(self) -> np.ndarray:
+        """(n, d) Delta_ij of the pair with each neighbour (``delta`` broadcast when it is one value)."""
+        d = np.asarray(self.z_own).shape[0]
+        return np.broadcast_to(np.asarray(self.delta, float), (len(self.neighbours), d))
+
+    @property
+    def repair(self) -> bool:
+        """Whether this is a repair's request: the neighbours' plans are pinned, no consensus."""
+        return self.neighbour_plans is not None
+
+
+@dataclass(frozen=True)
+class LocalResult:
+    """What agent ``agent`` transmits after its local step (plus its plan and diagnostics)."""
+
+    agent: int
+    own: np.ndarray
+    copies: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    success: bool
+    fallback: bool
+    solve_time: float
+    max_slack: float
+    cost: float
+    local_fallbacks: int = 0
+    """Local-step calls of this request whose QP path failed and which IPOPT solved instead
+    (``ADMMConfig.local`` "qp"; always 0 with "ipopt")."""
+
+
+@dataclass(frozen=True)
+class TimedResult(LocalResult):
+    """A :class:`LocalResult` that also carries the wall time of the local step that produced it."""
+
+    call_time: float = 0.0
+    """Seconds the agent spent on the request where it runs: its solver calls (``solve_time``)
+    plus its own bookkeeping around them (multipliers, parameters, the reuse test)."""
+
+
+@dataclass(frozen=True)
+class FallbackSolution(NLPSolution):
+    """IPOPT's answer to a local step whose QP path failed
+    (:class:`~swarmpc.solvers.admm.ladders.QPLocalSolverLadder`)."""
+
+    qp_status: str = ""
+    """The QP path's status of the failed call."""
+
+
+@dataclass(frozen=True, eq=False)
+class StepRequests:
+    """What every request of one MPC step shares, and the requests made from it.
+
+    ``bodies`` (M, d): pair (i, j) keeps Delta_ij = b_i + b_j. ``states`` (M, 2d), ``goals``
+    (M, 2d) and ``guess`` (M, N+1, 2d) are the step's measured states, goals and initial guesses.
+    """
+
+    settings: OCPSettings
+    config: ADMMConfig
+    bodies: np.ndarray
+    states: np.ndarray
+    goals: np.ndarray
+    guess: np.ndarray
+
+    def request(
+        self, i: int, graph: CouplingGraph, z: np.ndarray, rho: float, rho_previous: float, new_step: bool,
+        plans: tuple[np.ndarray, np.ndarray] | None = None, carry: tuple[bool, ...] = (), rescue: bool = False,
+    ) -> LocalRequest:
+        """Agent ``i``'s request: its neighbours and planes in ``graph``, the consensus ``z``
+        (M, d, K); with ``plans`` (states, inputs of each neighbour) a repair's request, whose
+        copies are those plans' positions."""
+        s = self.settings
+        neighbours = graph.neighbours[i]
+        normals, offsets = graph.planes_of(i)
+        if plans is None:
+            z_neighbours = z[list(neighbours)]
+        else:
+            z_neighbours = np.transpose(plans[0][:, s.first_constrained_step:, : s.dim], (0, 2, 1))
+        return LocalRequest(
+            agent=i,
+            state=self.states[i],
+            goal=self.goals[i],
+            delta=self.bodies[i] + self.bodies[list(neighbours)],
+            rho=rho,
+            rho_previous=rho_previous,
+            owner_weight=self.config.owner_weight if neighbours else 0.0,
+            new_step=new_step,
+            z_own=z[i],
+            neighbours=neighbours,
+            z_neighbours=z_neighbours.reshape(len(neighbours), s.dim, z.shape[2]),
+            neighbour_states=self.states[list(neighbours)],
+            guess=self.guess[i],
+            neighbour_plans=plans,
+            reuse_tol=self.config.reuse_tol,
+            relaxation=self.config.relaxation,
+            carry=carry,
+            rescue=rescue,
+            plane_normals=normals,
+            plane_offsets=offsets,
+        )

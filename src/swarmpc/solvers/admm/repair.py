@@ -1,0 +1,140 @@
+"""The safety passes after the ADMM iterations: the sequential repair pass and stranded fallbacks.
+
+ADMM on nonconvex problems may not reach consensus within any fixed number of iterations, and a
+step cannot wait. A step that stops without consensus ends with a sequential pass: each agent
+re-plans against its neighbours' current own plans, held fixed, so every coupled pair is feasible
+whenever the solves succeed. Pairs the repaired plans bring into conflict are coupled and repaired
+again, and a fallback that breaks the separation from another plan is planned around.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from swarmpc.solvers.admm.graph import CouplingGraph
+from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests
+from swarmpc.solvers.admm.safety import SafetyChecks
+
+REPAIR_ROUNDS = 3
+"""Most repair passes in one MPC step (the first, plus re-runs after coupling pairs whose repaired
+plans conflict)."""
+
+Solve = Callable[[list[LocalRequest]], list[LocalResult]]
+"""The agents' answers to a batch of requests (timed on the step's critical path)."""
+
+
+@dataclass(frozen=True, eq=False)
+class SafePlans:
+    """What the safety passes leave: the plans, the coupling, and the solves they added."""
+
+    results: list[LocalResult]
+    graph: CouplingGraph
+    agent_times: np.ndarray
+    """(M,) solve time per agent of the passes' new answers."""
+    failures: int
+    """Failed solves among the passes' new answers."""
+
+
+def new_solves(
+    results: Sequence[LocalResult], previous: Sequence[LocalResult], every: bool = False,
+) -> tuple[np.ndarray, int]:
+    """Solve time per agent and failed solves of the answers a repair pass produced (those not
+    carried over from ``previous``; ``every``: all of them)."""
+    new = [every or r is not old for r, old in zip(results, previous, strict=True)]
+    times = np.array([r.solve_time if fresh else 0.0 for r, fresh in zip(results, new, strict=True)])
+    return times, sum(fresh and not r.success for r, fresh in zip(results, new, strict=True))
+
+
+class Repair:
+    """The safety passes of one MPC step, asking the agents through ``solve``."""
+
+    def __init__(self, requests: StepRequests, safety: SafetyChecks, solve: Solve) -> None:
+        self.requests = requests
+        self.safety = safety
+        self.solve = solve
+
+    def make_safe(
+        self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult], repair_all: bool,
+        stranded_check: bool,
+    ) -> SafePlans:
+        """The safety passes after the iterations.
+
+        ``repair_all`` (ADMM stopped without consensus): the repair pass (:meth:`sequential`), and
+        again after coupling any candidate pair whose repaired plans conflict, up to
+        :data:`REPAIR_ROUNDS` passes. ``stranded_check``: fallbacks that break the separation from
+        another plan re-plan against every plan (rescued if their hard solves fail), then their
+        neighbours against them."""
+        times, failures = np.zeros(len(results)), 0
+        states = self.requests.states
+        for round_ in range(REPAIR_ROUNDS if repair_all else 0):
+            previous = results
+            results = self.sequential(graph, z, rho, results)
+            # later passes count only the agents they re-solved
+            new, failed = new_solves(results, previous, every=round_ == 0)
+            times, failures = times + new, failures + failed
+            # the repair only re-plans against neighbours: couple any candidate pair whose
+            # repaired plans now conflict and repair again
+            missing = self.safety.missing(results, graph, self.safety.checked_pairs(graph.candidates, states, results))
+            if not missing or round_ == REPAIR_ROUNDS - 1:
+                break
+            graph = graph.coupled(missing)
+        stranded = self.safety.stranded_fallbacks(results) if stranded_check else []
+        if stranded:
+            graph = graph.coupled(stranded)
+            previous = results
+            results = self.sequential(graph, z, rho, results, agents=sorted({i for i, _ in stranded}))
+            new, failed = new_solves(results, previous)
+            times, failures = times + new, failures + failed
+        return SafePlans(results, graph, times, failures)
+
+    def sequential(
+        self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult],
+        agents: list[int] | None = None,
+    ) -> list[LocalResult]:
+        """Consensus repair: agents re-plan one after another against the others' current own
+        plans (held fixed). Each agent respects the final plans of those before it and the plans
+        those after it will respect, so every pair ends up feasible whenever the solves succeed.
+        An agent whose solve fails flies its fallback plan, which the agents after it respect; it
+        re-plans once more at the end, against everyone's final plans, since a plan that respects
+        all of them keeps every pair it is in feasible. If it still fails, its fallback is final,
+        and the agents repaired before it never saw it: each neighbour whose plan comes within
+        max(Delta_ij) + d_min of that fallback re-plans once more against every final plan
+        (evidence: docs/lab/admm.md#spread-scaling-first). ``agents``: re-plan only these (in this
+        order) and then their neighbours as above; None: every coupled agent, highest index first
+        (a tie-break; docs/lab/admm.md#closing-the-gap)."""
+        repaired = list(results)
+        neighbours = graph.neighbours
+        order = list(range(len(results)))[::-1] if agents is None else list(agents)
+        retried: set[int] = set()
+        for i in order:
+            if not neighbours[i]:
+                continue
+            # a first failure re-plans at the end (its fallback is provisional); the retry and the
+            # re-plan of a stranded fallback are final and may rescue
+            repaired[i] = self._replan(i, graph, z, rho, repaired, rescue=agents is not None or i in retried)
+            if not repaired[i].success and i not in retried:
+                retried.add(i)
+                order.append(i)
+        d_min, largest = self.safety.settings.d_min, self.safety.largest_delta
+        for failed in [k for k in range(len(results)) if not repaired[k].success]:
+            for i in neighbours[failed]:
+                gap = np.max(np.abs(repaired[i].own - repaired[failed].own), axis=0).min()
+                if repaired[i].success and gap < largest[i, failed] + d_min:
+                    repaired[i] = self._replan(i, graph, z, rho, repaired)
+        return repaired
+
+    def _replan(
+        self, i: int, graph: CouplingGraph, z: np.ndarray, rho: float, plans: list[LocalResult],
+        rescue: bool = True,
+    ) -> LocalResult:
+        """Agent ``i``'s answer against its neighbours' current ``plans``, held fixed."""
+        s = self.requests.settings
+        others = list(graph.neighbours[i])
+        pinned = (np.array([plans[j].states for j in others]), np.array([plans[j].inputs for j in others]))
+        own_z = z.copy()
+        own_z[i] = plans[i].states[s.first_constrained_step:, : s.dim].T
+        request = self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=rescue)
+        return self.solve([request])[0]
