@@ -16,6 +16,8 @@ run: $(STAMP)
 
 test: $(STAMP)
 	if [ -f scripts/install-browser.sh ]; then bash scripts/install-browser.sh; fi
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 	$(PY) -m pytest
 	$(PY) -m pytest -m 'loop and not slow'
 

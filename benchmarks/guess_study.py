@@ -26,10 +26,8 @@ import json
 import os
 import sys
 import time
-from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
-from unittest import mock
 
 import numpy as np
 
@@ -222,7 +220,7 @@ def run_one(task: tuple[dict[str, Any] | str, str, int | None]) -> dict[str, Any
     from swarmpc.config import scenario_from_dict
     from swarmpc.model.geometry import count_collisions, obstacle_penetration
     from swarmpc.scenarios import builtin_scenario
-    from swarmpc.simulation import controller, loop
+    from swarmpc.simulation import loop
     from swarmpc.simulation.guessing import GuessProvider
 
     scn = builtin_scenario(spec) if isinstance(spec, str) else scenario_from_dict(spec)
@@ -230,7 +228,7 @@ def run_one(task: tuple[dict[str, Any] | str, str, int | None]) -> dict[str, Any
     if max_steps is not None:
         updates["stop.max_steps"] = max_steps
     scn = scn.with_updates(**updates)
-    ablation: AbstractContextManager[Any] = nullcontext()
+    provider: type[GuessProvider] = GuessProvider
     if config == NO_STEER:
         class NoWaypoints(GuessProvider):
             """The RRT state guess only: the MPC always aims at the real goal."""
@@ -238,12 +236,10 @@ def run_one(task: tuple[dict[str, Any] | str, str, int | None]) -> dict[str, Any
             def goals(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
                 return goals
 
-        # ablation hook, this process only: the controller builds this provider while the run lasts
-        ablation = mock.patch.object(controller, "GuessProvider", NoWaypoints)
-    with ablation:
-        started, cpu = time.perf_counter(), time.process_time()
-        result = loop.simulate(scn)
-        wall, cpu = time.perf_counter() - started, time.process_time() - cpu
+        provider = NoWaypoints  # the ablation: the controller builds this provider instead
+    started, cpu = time.perf_counter(), time.process_time()
+    result = loop.simulate(scn, guess_provider=provider)
+    wall, cpu = time.perf_counter() - started, time.process_time() - cpu
     d = scn.dim
     states = result.states
     positions = states[:, :, :d]

@@ -55,7 +55,8 @@ def obca_figure() -> Path:
     delta, d_min = np.array([0.3, 0.3]), 0.05
     fig = Figure(figsize=(6.4, 4.6), layout="constrained")
     ax = fig.add_subplot()
-    ax.add_patch(Rectangle(tuple(-delta), *(2 * delta), facecolor="0.8", edgecolor="0.3", label=r"agent $j$'s box $\pm\Delta$"))
+    ax.add_patch(Rectangle(tuple(-delta), *(2 * delta), facecolor="0.8", edgecolor="0.3",
+                           label=r"agent $j$'s box $\pm\Delta$"))
     # the set the hard form keeps out of: the box grown by d_min (a rounded square)
     ax.add_patch(FancyBboxPatch(tuple(-delta), *(2 * delta), boxstyle=f"round,pad={d_min}", fill=False,
                                 edgecolor="0.3", linestyle="--", label=r"box grown by $d_{min}$"))
@@ -74,7 +75,8 @@ def obca_figure() -> Path:
             color="tab:blue", fontsize=9, va="top")
     ax.annotate("", nearest + 0.25 * direction, nearest,
                 arrowprops=dict(arrowstyle="-|>", color="tab:green", lw=1.8))
-    ax.text(*(nearest + 0.27 * direction + np.array([-0.15, 0.03])), r"$G^T\lambda$ (unit)", color="tab:green", fontsize=9)
+    ax.text(*(nearest + 0.27 * direction + np.array([-0.15, 0.03])), r"$G^T\lambda$ (unit)",
+            color="tab:green", fontsize=9)
 
     inside = np.array([-0.12, 0.18])
     depth = -point_box_distance(inside, delta)
@@ -97,8 +99,8 @@ def obca_figure() -> Path:
     ax.set_ylabel(r"$q_y$ [m]")
     ax.grid(True, linewidth=0.4, alpha=0.4)
     ax.legend(loc="upper left", fontsize=8, frameon=False)
-    ax.set_title(rf"OBCA certificate of $q = p_i - p_j$ against $j$'s box ($\Delta$ = {delta[0]}, $d_{{min}}$ = {d_min})",
-                 fontsize=9)
+    ax.set_title(r"OBCA certificate of $q = p_i - p_j$ against $j$'s box "
+                 rf"($\Delta$ = {delta[0]}, $d_{{min}}$ = {d_min})", fontsize=9)
     return save(fig, "concept-obca.png")
 
 
@@ -112,9 +114,11 @@ def admm_figure(tmp: Path) -> Path:
     ax_r, ax_i = fig.subplots(1, 2, width_ratios=[1.4, 1.0])
     coupled = np.flatnonzero(iterations > 1)
     # a quick step, a typical coupled one and the slowest
-    picks = sorted({int(coupled[0]), int(coupled[len(coupled) // 2]), int(np.argmax(iterations))}) if len(coupled) else [0]
-    colors = ["tab:blue", "tab:orange", "tab:purple"]
-    for step, color in zip(picks, colors):
+    picks = [0]
+    if len(coupled):
+        picks = sorted({int(coupled[0]), int(coupled[len(coupled) // 2]), int(np.argmax(iterations))})
+    colors = ["tab:blue", "tab:orange", "tab:purple"]  # one per pick; picks may be fewer (repeated steps merge)
+    for step, color in zip(picks, colors, strict=False):
         n = int(iterations[step])
         its = np.arange(1, n + 1)
         ax_r.semilogy(its, primal[step, :n], "-", color=color)
@@ -123,13 +127,14 @@ def admm_figure(tmp: Path) -> Path:
     ax_r.set_xlabel("ADMM iteration")
     ax_r.set_ylabel("RMS residual [m]")
     ax_r.grid(True, which="both", linewidth=0.4, alpha=0.4)
-    handles = [Line2D([], [], color=c, label=f"MPC step {s} ({int(iterations[s])} it.)") for s, c in zip(picks, colors)]
+    handles = [Line2D([], [], color=c, label=f"MPC step {s} ({int(iterations[s])} it.)")
+               for s, c in zip(picks, colors, strict=False)]
     handles += [Line2D([], [], color="k", label=r"primal $\|v - z\|$"),
                 Line2D([], [], color="k", linestyle="--", label=r"dual $\rho\|z - z_{prev}\|$"),
                 Line2D([], [], color="k", linestyle=":", label=f"tol {tol:g}")]
     ax_r.legend(handles=handles, fontsize=7, ncol=3, frameon=False, loc="lower left", bbox_to_anchor=(0.0, 1.0))
     ax_i.bar(np.arange(len(iterations)), iterations, width=1.0, color="0.6")
-    for step, color in zip(picks, colors):
+    for step, color in zip(picks, colors, strict=False):
         ax_i.bar([step], [iterations[step]], width=1.0, color=color)
     ax_i.set_xlabel("MPC step")
     ax_i.set_ylabel("ADMM iterations")

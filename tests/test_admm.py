@@ -20,7 +20,7 @@ from swarmpc.solvers.executors import SerialExecutor, ThreadExecutor
 
 def plan_cost(plan, goals, s: OCPSettings) -> float:
     total = 0.0
-    for states, inputs, goal in zip(plan.states, plan.inputs, goals):
+    for states, inputs, goal in zip(plan.states, plan.inputs, goals, strict=True):
         err = states - goal
         total += np.einsum("ki,ij,kj->", err[:-1], s.Q, err[:-1]) + np.einsum("ki,ij,kj->", inputs, s.R, inputs)
         total += err[-1] @ s.Qf @ err[-1]
@@ -131,7 +131,7 @@ def test_executors_give_identical_plans():
         second = solver.plan(first.states[:, 1], goals, guess)  # warm-started step
         plans.append((first, second))
         solver.close()
-    for a, b in zip(plans[0], plans[1]):
+    for a, b in zip(plans[0], plans[1], strict=True):
         assert a.admm_iterations == b.admm_iterations
         assert np.array_equal(a.states, b.states) and np.array_equal(a.inputs, b.inputs)
         assert a.primal_residuals == b.primal_residuals
@@ -250,7 +250,7 @@ def test_a_loose_tolerance_still_stops_only_on_plans_kept_apart(name):
         plan = solver.plan(states, goals, guess)
         positions = plan.states[:, s.first_constrained_step:, : s.dim]
         return min(point_box_distance(p - q, scn.delta_vector)
-                   for i in range(4) for j in range(i + 1, 4) for p, q in zip(positions[i], positions[j]))
+                   for i in range(4) for j in range(i + 1, 4) for p, q in zip(positions[i], positions[j], strict=True))
 
     assert closest(check=False) < 0.0  # inside each other's delta box
     assert closest(check=True) >= 0.5 * s.d_min - 1e-6

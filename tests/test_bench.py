@@ -258,4 +258,5 @@ def test_a_plane_margin_reaches_the_admm_cases_only():
     cases = plan_cases(["random"], [4], 1, "serial", None, 60.0, 4, plane_margin=0.05)
     by_method = {c.method: c.scenario().solver.plane_margin for c in cases}
     assert by_method == {"admm": 0.05, "centralized": None}
-    assert all(c.scenario().solver.plane_margin is None for c in plan_cases(["random"], [4], 1, "serial", None, 60.0, 0))
+    unset = plan_cases(["random"], [4], 1, "serial", None, 60.0, 0)
+    assert all(c.scenario().solver.plane_margin is None for c in unset)

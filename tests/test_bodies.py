@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import ScriptedExecutor
 from scipy.optimize import linprog
 
+from conftest import ScriptedExecutor
 from swarmpc import plots, viewer
 from swarmpc.config import ScenarioError, load_scenario, scenario_from_dict
 from swarmpc.formulation.ocp import OCPSettings
@@ -128,7 +128,8 @@ def test_a_body_is_a_scalar_or_one_value_per_axis():
     ({"agents": [{"start": [0, 0], "goal": [1, 1], "body": [0.1, 0.1, 0.1]}]},
      "agents[0].body: expected a scalar or 2 values for dim 2, got 3"),
     ({"agents": [{"start": [0, 0], "goal": [1, 1], "body": 0}]}, "agents[0].body: every half-size must be > 0"),
-    ({"agents": [{"start": [0, 0], "goal": [1, 1], "body": [0.1, -0.2]}]}, "agents[0].body: every half-size must be > 0"),
+    ({"agents": [{"start": [0, 0], "goal": [1, 1], "body": [0.1, -0.2]}]},
+     "agents[0].body: every half-size must be > 0"),
     ({"agents": [{"start": [0, 0], "goal": [1, 1], "body": True}]}, "agents[0].body"),
 ])
 def test_bad_bodies_are_refused_with_one_line(change, message):
@@ -175,7 +176,7 @@ def test_admm_hands_each_agent_the_delta_of_each_of_its_pairs():
     solver.plan(states, scn.goal_states(), np.repeat(states[:, None], s.horizon + 1, axis=1))
     checked = 0
     for request in executor.requests:
-        for row, j in zip(request.delta, request.neighbours):
+        for row, j in zip(request.delta, request.neighbours, strict=True):
             assert np.array_equal(row, scn.bodies[request.agent] + scn.bodies[j])
             checked += 1
     assert checked >= 4  # every agent held a copy of another
@@ -256,10 +257,12 @@ def crossing_run(tmp_path_factory) -> Path:
     """A hand-made run: agent 0 (body 0.1) sweeps along y = 0 past agent 1 (body 0.25, at y = 0.33:
     the bodies overlap while |x_0| < 0.35, where Δ = 0.3 would count nothing) and agent 2 (body
     0.15, at y = -0.26: never overlapping, where Δ would count a collision)."""
-    scn = scenario_from_dict({"name": "hand-made", "dim": 2, "delta": 0.3, "solver": {"method": "centralized"}, "agents": [
+    agents = [
         {"start": [-1.0, 0.0], "goal": [1.0, 0.0], "body": 0.1},
         {"start": [0.0, 0.33], "goal": [0.0, 0.33], "body": 0.25},
-        {"start": [0.5, -0.26], "goal": [0.5, -0.26], "body": [0.15, 0.15]}]})
+        {"start": [0.5, -0.26], "goal": [0.5, -0.26], "body": [0.15, 0.15]}]
+    scn = scenario_from_dict({"name": "hand-made", "dim": 2, "delta": 0.3, "solver": {"method": "centralized"},
+                              "agents": agents})
     steps = 20
     states = np.zeros((steps + 1, 3, 4))
     states[:, 0, 0] = -1.0 + 0.1 * np.arange(steps + 1)
@@ -331,7 +334,7 @@ def test_the_viewer_draws_bodies_and_marks_exactly_the_counted_collisions(crossi
     for frame in fig["frames"]:
         k = int(frame["name"])
         red = set()
-        for index, trace in zip(frame["traces"], frame["data"]):
+        for index, trace in zip(frame["traces"], frame["data"], strict=True):
             if index in box_ids:
                 i = box_ids[index]
                 xs, ys = [v for v in trace["x"] if v is not None], [v for v in trace["y"] if v is not None]

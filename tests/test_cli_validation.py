@@ -30,7 +30,8 @@ CASES = {
     "start inside an obstacle": (
         with_(obstacles=[{"box": {"center": [-1, -1], "half_size": [0.2, 0.2]}}]), "agents[0].start"),
     "goal outside the workspace": (
-        {"workspace": {"lower": [-3, -3], "upper": [3, 3]}, "agents": [{"start": [0, 0], "goal": [3.5, 0]}]}, "agents[0].goal"),
+        {"workspace": {"lower": [-3, -3], "upper": [3, 3]}, "agents": [{"start": [0, 0], "goal": [3.5, 0]}]},
+        "agents[0].goal"),
     "empty agent list": ({"agents": []}, "agents"),
     "malformed polytope": (with_(obstacles=[{"polytope": {"G": [[1, 0], [0, 1]], "g": [1]}}]), "obstacles[0]"),
     "hard with d_min 0": (with_(d_min=0), "d_min"),
@@ -38,7 +39,8 @@ CASES = {
     "negative reuse tolerance": (with_(solver={"reuse_tol": -1e-4}), "solver.reuse_tol"),
     # (data, field, reason): the reason is a further substring the line must contain
     "goal inside an obstacle": (
-        with_(obstacles=[{"box": {"center": [1, 1], "half_size": [0.2, 0.2]}}]), "agents[0].goal", "inside obstacles[0]"),
+        with_(obstacles=[{"box": {"center": [1, 1], "half_size": [0.2, 0.2]}}]), "agents[0].goal",
+        "inside obstacles[0]"),
     "goal inside a polytope obstacle": (
         with_(obstacles=[{"box": {"center": [0, 2.5], "half_size": [0.2, 0.2]}},
                          {"polytope": {"G": [[1, 0], [0, 1], [-1, -1]], "g": [1.5, 1.5, -1.5]}}]),
@@ -50,7 +52,8 @@ CASES = {
     "NaN in a vector": (
         {"agents": [{"start": [-1, -1], "goal": [1, 1]}, {"start": [1, float("nan")], "goal": [-1, 1]}]},
         "agents[1].start", "finite"),
-    "NaN in a full state": ({"agents": [{"start": [0, 0], "goal": [1, 1, 0, float("nan")]}]}, "agents[0].goal", "finite"),
+    "NaN in a full state": (
+        {"agents": [{"start": [0, 0], "goal": [1, 1, 0, float("nan")]}]}, "agents[0].goal", "finite"),
     "NaN in a weight matrix": (
         with_(weights={"Q": [[0.1, 0, 0, 0], [0, float("nan"), 0, 0], [0, 0, 0.1, 0], [0, 0, 0, 0.1]]}),
         "weights.Q", "finite"),

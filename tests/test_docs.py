@@ -221,7 +221,9 @@ def test_lab_pages_are_generated_from_the_json():
     pages = lab.generate()
     assert len(pages) >= 5  # the index and at least admm, initial-guesses, paper-reproduction, troubleshooting
     stale = [str(path.relative_to(ROOT)) for path in lab.stale(pages)]
-    assert not stale, f"{stale} out of date with benchmarks/results/*.json: run `python benchmarks/lab_tables.py --write`"
+    assert not stale, (
+        f"{stale} out of date with benchmarks/results/*.json: run `python benchmarks/lab_tables.py --write`"
+    )
 
 
 def test_lab_records_follow_the_schema():
@@ -239,7 +241,8 @@ def test_lab_records_follow_the_schema():
 def test_design_notes_cite_the_lab_record():
     """Every row of a design note's "option | default | why | evidence" table links its evidence."""
     for page in sorted((DOCS / "design").glob("*.md")):
-        rows = [line for line in page.read_text().splitlines() if line.startswith("| ") and not line.startswith("| option")]
+        rows = [line for line in page.read_text().splitlines()
+                if line.startswith("| ") and not line.startswith("| option")]
         assert rows, f"{page.name}: no choices table"
         for row in rows:
             evidence = row.rstrip(" |").rsplit("|", 1)[-1].strip()
@@ -251,7 +254,8 @@ def test_the_site_builds_without_warnings(tmp_path):
     pytest.importorskip("mkdocs")
     pytest.importorskip("mkdocstrings_handlers.python")
     done = subprocess.run(
-        [sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml"), "-d", str(tmp_path / "site")],
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml"),
+         "-d", str(tmp_path / "site")],
         check=False,
         cwd=ROOT,
         capture_output=True,
@@ -259,7 +263,9 @@ def test_the_site_builds_without_warnings(tmp_path):
         timeout=300,
     )
     warnings = [line for line in done.stderr.splitlines() if "WARNING" in line or "ERROR" in line]
-    assert done.returncode == 0 and not warnings, "mkdocs build --strict failed:\n" + "\n".join(warnings or [done.stderr[-3000:]])
+    assert done.returncode == 0 and not warnings, (
+        "mkdocs build --strict failed:\n" + "\n".join(warnings or [done.stderr[-3000:]])
+    )
     api = (tmp_path / "site" / "api" / "simulation" / "index.html").read_text()
     assert "swarmpc.simulation.loop.simulate" in api and "RunData" in api
 

@@ -31,7 +31,7 @@ def polygon(center, radius, n, phase):
     angles = phase + 2 * np.pi * np.arange(n) / n
     verts = np.asarray(center) + radius * np.column_stack([np.cos(angles), np.sin(angles)])
     G, g = [], []
-    for a, b in zip(verts, np.roll(verts, -1, axis=0)):
+    for a, b in zip(verts, np.roll(verts, -1, axis=0), strict=True):
         normal = np.array([b[1] - a[1], a[0] - b[0]])
         G.append(normal)
         g.append(normal @ a)
@@ -69,7 +69,7 @@ def test_polygon_seed_is_a_lower_bound_equal_to_the_distance_outside(point, radi
     if inside:
         assert value <= 1e-9
     else:
-        true = min(segment_distance(point, a, b) for a, b in zip(verts, np.roll(verts, -1, axis=0)))
+        true = min(segment_distance(point, a, b) for a, b in zip(verts, np.roll(verts, -1, axis=0), strict=True))
         assert value <= true + 1e-9  # weak duality
         assert value == pytest.approx(true, abs=1e-7)  # and the seed is the optimal certificate
 

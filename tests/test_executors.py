@@ -47,7 +47,7 @@ def serial_plans(meeting_point):
 
 
 def assert_same_plans(reference, plans) -> None:
-    for a, b in zip(reference, plans):
+    for a, b in zip(reference, plans, strict=True):
         assert a.admm_iterations == b.admm_iterations
         assert np.array_equal(a.states, b.states) and np.array_equal(a.inputs, b.inputs)
         assert a.primal_residuals == b.primal_residuals and a.dual_residuals == b.dual_residuals
@@ -131,7 +131,7 @@ def test_step_fields_travel_once_and_arrive_intact():
             for field in ("agent", "rho", *STEP_FIELDS):
                 a, b = getattr(rebuilt, field), getattr(request, field)
                 assert (a is None and b is None) or all(np.array_equal(x, y) for x, y in zip(
-                    a if isinstance(a, tuple) else (a,), b if isinstance(b, tuple) else (b,)))
+                    a if isinstance(a, tuple) else (a,), b if isinstance(b, tuple) else (b,), strict=True))
         again = outbox.pack(request)[1]
         assert set(again) == set(STEP_FIELDS)  # an identical repeat sends no step field
 

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_cli
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
+from conftest import run_cli
 from swarmpc import export
 from swarmpc.export import (
     MCAP_TOPICS,
@@ -84,7 +84,7 @@ def test_csv_reads_back_as_the_run_arrays(run_dir, tmp_path):
     assert rows[0] == csv_header(dim)
     body = rows[1:]
     assert len(body) == (steps + 1) * m
-    for row, (k, i) in zip(body, [(k, i) for k in range(steps + 1) for i in range(m)]):
+    for row, (k, i) in zip(body, [(k, i) for k in range(steps + 1) for i in range(m)], strict=True):
         assert (int(row[0]), int(row[2])) == (k, i)
         assert float(row[1]) == t[k]
         assert [float(v) for v in row[3 : 3 + 2 * dim]] == states[k, i].tolist()  # exact: full precision
@@ -331,17 +331,26 @@ def test_mcap_metrics_leave_out_what_a_damaged_steps_file_lacks(run_dir, tmp_pat
     assert isinstance(metrics[1]["solver_failures"], int)
 
 
-def test_a_failed_export_leaves_the_old_file_and_no_temporary(run_dir, tmp_path, monkeypatch):
+def test_a_failed_export_leaves_the_old_file_and_no_temporary(run_dir, tmp_path):
+    """The file system refuses the export half-way, as a full disk or a quota would: a file-size
+    limit (RLIMIT_FSIZE) below the CSV's size, in a fresh interpreter, with SIGXFSZ ignored so
+    that the write fails (EFBIG) instead of killing the process."""
+    pytest.importorskip("resource")
     target = tmp_path / "out.csv"
     target.write_text("old\n")
-
-    def broken(run, stream):
-        stream.write("half a row")
-        raise RuntimeError("disk on fire")
-
-    monkeypatch.setattr(export, "write_csv", broken)
-    with pytest.raises(RuntimeError, match="disk on fire"):
-        export_run(run_dir, "csv", out=target, overwrite=True)
+    script = (
+        "import resource, signal\n"
+        "from swarmpc.export import export_run\n"
+        "from swarmpc.simulation.outdir import OutputError\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (1024, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))\n"
+        "try:\n"
+        f"    export_run({str(run_dir)!r}, 'csv', out={str(target)!r}, overwrite=True)\n"
+        "except OutputError as err:\n"
+        "    print(err)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.stdout == f"{target}: cannot write (File too large)\n", done.stderr[-2000:]
     assert target.read_text() == "old\n"
     assert [p.name for p in tmp_path.iterdir()] == ["out.csv"]
 

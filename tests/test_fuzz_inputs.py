@@ -7,6 +7,7 @@ import contextlib
 import io
 import math
 import re
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -20,8 +21,8 @@ from hypothesis import strategies as st
 
 from conftest import run_cli
 from swarmpc.cli import app, main
-from swarmpc.config import MAX_MAGNITUDE, MAX_SEED, Scenario, ScenarioError, scenario_from_dict
-from swarmpc.scenarios import BUILTINS, builtin_parameters
+from swarmpc.config import MAX_MAGNITUDE, MAX_SEED, Scenario, ScenarioError, scenario_from_dict, scenario_to_yaml
+from swarmpc.scenarios import BUILTINS, builtin_parameters, builtin_scenario
 
 PREFIX = "swarmpc: error: "
 FIELDS = set(Scenario.model_fields)
@@ -63,7 +64,8 @@ def test_random_mappings_validate_or_fail_with_one_line(data):
         assert scn.num_agents >= 1 and math.isfinite(scn.dt) and scn.dt > 0 and scn.seed >= 0
 
 
-@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@settings(max_examples=8, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(scenarios)
 def test_cli_never_shows_a_traceback(tmp_path, data):
     path = tmp_path / "fuzz.yaml"
@@ -252,30 +254,56 @@ def test_a_negative_seed_is_rejected_naming_seed(how, tmp_path):
 
 
 # ------------------------------------------------------------------ Ctrl-C outside the loop
-def test_ctrl_c_during_start_up_is_one_line_and_status_130(tmp_path, monkeypatch):
-    def interrupt(*_args: Any, **_kwargs: Any) -> None:
-        raise KeyboardInterrupt
+INTERRUPT_AT_OPEN = """\
+import os, sys
+from swarmpc.cli import main
 
-    monkeypatch.setattr("swarmpc.cli.resolve_scenario", interrupt)
-    out = tmp_path / "out"
-    code, stderr = run_in_process("run", "u-trap", "--max-steps", "1", "--out", str(out), "--quiet")
+def interrupt(event, args):
+    if event == "open" and isinstance(args[0], (str, os.PathLike)):
+        path = os.path.abspath(os.fspath(args[0]))
+        if os.path.basename(path) == NAME:
+            folder = os.path.dirname(path)
+            written = [os.path.isfile(os.path.join(folder, name)) for name in ("summary.json", "trajectory.npz")]
+            print(folder, *written, flush=True)
+            raise KeyboardInterrupt
+
+sys.addaudithook(interrupt)
+main()
+"""
+
+
+def run_interrupted_at_open(name: str, *args: str) -> tuple[int, str, str]:
+    """``swarmpc ARGS`` in a fresh interpreter, interrupted the moment it opens a file called
+    ``name``: the KeyboardInterrupt Python's SIGINT handler raises, from an audit hook on the
+    ``open`` event (at the operating-system boundary, no swarmpc function replaced). Returns
+    (exit status, stdout: the file's folder and whether summary.json and trajectory.npz were
+    in it, stderr)."""
+    script = f"NAME = {name!r}\nimport sys\nsys.argv = ['swarmpc', *{list(args)!r}]\n" + INTERRUPT_AT_OPEN
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    return done.returncode, done.stdout, done.stderr
+
+
+def test_ctrl_c_during_start_up_is_one_line_and_status_130(tmp_path):
+    scenario = tmp_path / "in" / "u-trap.yaml"  # interrupted while the scenario file is read
+    scenario.parent.mkdir()
+    scenario.write_text(scenario_to_yaml(builtin_scenario("u-trap")))
+    work = tmp_path / "work"
+    work.mkdir()
+    code, stdout, stderr = run_interrupted_at_open(
+        "u-trap.yaml", "run", str(scenario), "--max-steps", "1", "--out", str(work / "out"), "--quiet")
     assert (code, stderr) == (130, "swarmpc: interrupted\n")
-    assert list(tmp_path.iterdir()) == []
+    assert stdout.split()[0] == str(scenario.parent)  # it was interrupted there
+    assert list(work.iterdir()) == []
 
 
-def test_ctrl_c_while_writing_the_run_folder_leaves_nothing(tmp_path, monkeypatch):
-    seen: list[Path] = []
-
-    def interrupt(_run: Any, path: Path) -> None:  # the figure is written last, into the staging folder
-        seen.append(path.parent)
-        assert (path.parent / "summary.json").is_file() and (path.parent / "trajectory.npz").is_file()
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr("swarmpc.plots.plot_trajectories", interrupt)
-    out = tmp_path / "out"
-    code, stderr = run_in_process("run", "u-trap", "--max-steps", "1", "--out", str(out), "--quiet")
+def test_ctrl_c_while_writing_the_run_folder_leaves_nothing(tmp_path):
+    out = tmp_path / "out"  # the figure is written last, into the staging folder
+    code, stdout, stderr = run_interrupted_at_open(
+        "trajectory.png", "run", "u-trap", "--max-steps", "1", "--out", str(out), "--quiet")
     assert (code, stderr) == (130, "swarmpc: interrupted\n")
-    assert len(seen) == 1 and seen[0].parent == tmp_path and seen[0] != out  # it was half-written
+    folder, summary, trajectory = stdout.split()
+    assert Path(folder).parent == tmp_path and Path(folder) != out  # a staging folder ...
+    assert (summary, trajectory) == ("True", "True")  # ... half-written
     assert list(tmp_path.iterdir()) == []  # and the staging folder is gone
 
 
@@ -288,9 +316,10 @@ def test_overlapping_starts_name_the_first_overlapping_pair(points, delta):
     starts = [[0.5 * x, 0.5 * y] for x, y in points]
     agents = [{"start": p, "goal": [20.0 + 2 * k, 20.0]} for k, p in enumerate(starts)]
     first = next(((i, j) for i in range(len(starts)) for j in range(i + 1, len(starts))
-                  if all(abs(a - b) < delta for a, b in zip(starts[i], starts[j]))), None)
+                  if all(abs(a - b) < delta for a, b in zip(starts[i], starts[j], strict=True))), None)
     if first is None:
         scenario_from_dict({"dim": 2, "delta": delta, "agents": agents})
         return
-    with pytest.raises(ScenarioError, match=re.escape(f"agents[{first[1]}].start: within delta of agents[{first[0]}].start")):
+    message = f"agents[{first[1]}].start: within delta of agents[{first[0]}].start"
+    with pytest.raises(ScenarioError, match=re.escape(message)):
         scenario_from_dict({"dim": 2, "delta": delta, "agents": agents})

@@ -26,7 +26,7 @@ from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.dynamics import DoubleIntegrator
 from swarmpc.model.geometry import box_signed_distance
 from swarmpc.scenarios import builtin_scenario
-from swarmpc.simulation.controller import admm_config, make_solver
+from swarmpc.simulation.controller import make_solver
 from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.simulation.loop import simulate
 from swarmpc.simulation.metrics import closed_loop_cost
@@ -125,7 +125,7 @@ def test_closed_loop_qp_reaches_every_goal_without_collision_at_the_ipopt_cost(q
 # --- the same local problems ---------------------------------------------------------------------
 def start_from(scn: Scenario, states: np.ndarray) -> Scenario:
     """``scn`` with every agent starting at the given full state (M, 2d)."""
-    agents = [{**a.model_dump(), "start": s.tolist()} for a, s in zip(scn.agents, states)]
+    agents = [{**a.model_dump(), "start": s.tolist()} for a, s in zip(scn.agents, states, strict=True)]
     return scn.with_updates(agents=agents)
 
 
@@ -167,7 +167,8 @@ class RecordingAgents:
 def admm_solver(scn: Scenario, executor=None, *, agents=None, qp_backend=None) -> ADMMSolver:  # type: ignore[no-untyped-def]
     """The solver ``make_solver`` builds for ``scn``; ``qp_backend`` makes its agents' QP solver
     and ``agents(factory)``, if given, the agents from the factory ``make_solver`` would use."""
-    s, bodies, config = OCPSettings.from_scenario(scn), planner_bodies(scn), admm_config(scn)
+    s, bodies = OCPSettings.from_scenario(scn), planner_bodies(scn)
+    config = ADMMConfig.from_options(scn.solver, scn.collision)
     factory = LocalAgentFactory.for_config(s, bodies, config, qp_backend=qp_backend)
     made = factory if agents is None else agents(factory)
     return ADMMSolver(s, scn.num_agents, bodies, config, executor, agents=made)

@@ -119,7 +119,7 @@ def test_non_candidates_never_come_within_reach(case):
     candidates = reach_candidates(states, s, delta)
     assert np.array_equal(candidates, candidates.T) and not candidates.diagonal().any()
     assert not candidates[0, 1]  # placed beyond the threshold
-    for i, j in zip(*np.nonzero(np.triu(~candidates, k=1))):
+    for i, j in zip(*np.nonzero(np.triu(~candidates, k=1)), strict=True):
         # each agent: random admissible inputs, full effort towards the other, braking
         toward = np.sign(states[j, :d] - states[i, :d])
         plans_i = solver_like_plans(states[i], [random_inputs[i], np.tile(toward, (HORIZON, 1))], s)

@@ -1,6 +1,7 @@
 """Closed-loop behaviour pinned: four whole runs must give the trajectories recorded in
 tests/data/pinned-trajectories.npz (made by tests/data/make_pinned.py). A refactor that changes a
-single state of these runs fails here (the inputs follow from the states through the dynamics); a change meant to alter behaviour regenerates the file."""
+single state of these runs fails here (the inputs follow from the states through the dynamics); a
+change meant to alter behaviour regenerates the file."""
 
 from __future__ import annotations
 

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import matplotlib
 import matplotlib.image
 import numpy as np
 import pytest
@@ -337,7 +338,10 @@ def test_mp4_animation_is_a_real_video(run_2d: Path, tmp_path: Path) -> None:
 
 def test_animate_rejects_bad_arguments(run_2d: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     run = plots.load_run(run_2d)
-    monkeypatch.setattr(plots, "find_ffmpeg", lambda: None)
+    # a machine without ffmpeg: matplotlib's configured one is not there, nor the imageio-ffmpeg wheel
+    monkeypatch.setitem(matplotlib.rcParams, "animation.ffmpeg_path", str(tmp_path.parent / "no-ffmpeg-here"))
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    assert plots.find_ffmpeg() is None
     with pytest.raises(plots.AnimationWriterError, match="install ffmpeg.*gif"):
         plots.animate(run, tmp_path / "a.mp4", fmt="mp4")
     with pytest.raises(ValueError, match="fmt"):

@@ -15,12 +15,12 @@ import pickle
 import numpy as np
 import pytest
 
+from conftest import dynamics_error
 from swarmpc.formulation.ocp import OCPSettings, build_local
 from swarmpc.model.dynamics import discrete_matrices
 from swarmpc.model.geometry import box_halfspaces, box_signed_distance
 from swarmpc.solvers.guesses import pair_guess_blocks
 from swarmpc.solvers.qp_local import QPLocalLadder, QPLocalOptions, speed_polytope
-from conftest import dynamics_error
 
 
 def settings(dim: int, **changes) -> OCPSettings:
@@ -75,8 +75,8 @@ def exact_clearances(s: OCPSettings, X: np.ndarray, copies: list[np.ndarray], de
     ``deltas[c]``, default 0.3) and to every (box) obstacle, from plain geometry."""
     own = X[: s.dim, s.first_constrained_step:]
     deltas = deltas or [0.3] * len(copies)
-    gaps = [box_signed_distance(own - c, np.full((s.dim, 1), h), axis=0) for c, h in zip(copies, deltas)]
-    for G, g in s.obstacles:
+    gaps = [box_signed_distance(own - c, np.full((s.dim, 1), h), axis=0) for c, h in zip(copies, deltas, strict=True)]
+    for _, g in s.obstacles:
         centre, half = 0.5 * (g[: s.dim] - g[s.dim:]), 0.5 * (g[: s.dim] + g[s.dim:])
         gaps.append(box_signed_distance(own - centre[:, None], half[:, None], axis=0))
     return np.array(gaps)

@@ -155,7 +155,7 @@ def test_every_number_in_the_report_matches_its_run_folder(quick: Path) -> None:
             name, folder = LINK.fullmatch(row[-1]).groups()  # type: ignore[union-attr]
             summary = json.loads((quick / folder / "summary.json").read_text())
             scenario = yaml.safe_load((quick / folder / "scenario.yaml").read_text())
-            for header, cell in zip(headers[:-1], row[:-1]):
+            for header, cell in zip(headers[:-1], row[:-1], strict=True):
                 where = f"{name} / {header}"
                 if header in REFERENCE:
                     old, new = REFERENCE[header]

@@ -27,7 +27,6 @@ from swarmpc.solvers.rrt import (  # noqa: E402
     time_parametrize,
 )
 
-
 # ----------------------------------------------------------------------------- helpers / oracle
 
 
@@ -47,7 +46,7 @@ class Poly:
 def box(lo, hi) -> Poly:
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     d = lo.size
-    verts = np.array(list(itertools.product(*zip(lo, hi))), float)
+    verts = np.array(list(itertools.product(*zip(lo, hi, strict=True))), float)
     return Poly(np.vstack([np.eye(d), -np.eye(d)]), np.concatenate([hi, -lo]), verts)
 
 
@@ -56,7 +55,7 @@ def regular_polygon(center, radius, n) -> Poly:
     angles = 2 * np.pi * np.arange(n) / n
     verts = np.asarray(center) + radius * np.column_stack([np.cos(angles), np.sin(angles)])
     G, g = [], []
-    for a, b in zip(verts, np.roll(verts, -1, axis=0)):
+    for a, b in zip(verts, np.roll(verts, -1, axis=0), strict=True):
         normal = np.array([b[1] - a[1], a[0] - b[0]])  # outward for counter-clockwise vertices
         G.append(normal)
         g.append(normal @ a)
@@ -393,7 +392,7 @@ def test_rrtguess_is_reproducible_and_guess_shape():
         runs.append((out, guess.stats))
     (a, sa), (b, sb) = runs
     assert sa == sb
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x, y)
     g = a[0]
     assert g.shape == (21, 4)

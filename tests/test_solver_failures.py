@@ -13,11 +13,10 @@ from conftest import load_folder, recount_collisions
 from swarmpc.config import scenario_from_dict
 from swarmpc.formulation.nlp import NLPSolution
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.simulation.controller import admm_config
 from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.simulation.loop import make_solver, simulate
 from swarmpc.simulation.results import write_run
-from swarmpc.solvers.admm import ADMMSolver, LocalAgent, LocalAgentFactory
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalAgent, LocalAgentFactory
 
 # three agents whose straight paths cross near the origin within a few steps of each other
 CROSSING = {
@@ -87,7 +86,8 @@ class FlakyAgents:
 
 def flaky_solver(scn: Any, failing: set[tuple[int, int]]) -> ADMMSolver:
     """The scenario's ADMM solver (as ``make_solver`` builds it) with fault injection."""
-    s, bodies, config = OCPSettings.from_scenario(scn), planner_bodies(scn), admm_config(scn)
+    s, bodies = OCPSettings.from_scenario(scn), planner_bodies(scn)
+    config = ADMMConfig.from_options(scn.solver, scn.collision)
     agents = FlakyAgents(LocalAgentFactory.for_config(s, bodies, config), failing)
     return ADMMSolver(s, scn.num_agents, bodies, config, agents=agents)
 

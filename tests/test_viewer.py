@@ -168,7 +168,7 @@ def _role(fig, role: str) -> list:
 
 def _frame_traces(fig, frame) -> list[tuple[dict, object]]:
     """(meta of the figure trace it updates, frame trace) for every trace of a frame."""
-    return [(fig.data[idx].meta, tr) for idx, tr in zip(frame.traces, frame.data)]
+    return [(fig.data[idx].meta, tr) for idx, tr in zip(frame.traces, frame.data, strict=True)]
 
 
 def _annotations(fig, dim: int) -> list:
@@ -370,17 +370,16 @@ def test_page_dict_needs_no_validation(runs, key):
 def test_polytope_vertices():
     lower, upper = np.array([-10.0, -10.0]), np.array([10.0, 10.0])
     triangle = viewer.polytope_vertices(
-        np.array([[-1.0, 0.0], [0.0, -1.0], [1.0, 1.0]]), np.array([0.0, 0.0, 1.0]), lower, upper
+        np.array([[-1.0, 0.0], [0.0, -1.0], [1.0, 1.0]]), np.array([0.0, 0.0, 1.0]), (lower, upper)
     )
-    assert triangle is not None and len(triangle) == 3
+    assert len(triangle) == 3
     assert {tuple(np.round(v, 9)) for v in triangle} == {(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)}
     # a half-plane is clipped to the box
-    half = viewer.polytope_vertices(np.array([[1.0, 0.0]]), np.array([0.0]), lower, upper)
-    assert half is not None
+    half = viewer.polytope_vertices(np.array([[1.0, 0.0]]), np.array([0.0]), (lower, upper))
     assert half[:, 0].min() == pytest.approx(-10) and half[:, 0].max() == pytest.approx(0)
     # an empty polytope has no vertices
     G, g = np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([-1.0, -1.0])  # x <= -1 and x >= 1
-    assert viewer.polytope_vertices(G, g, lower, upper) is None
+    assert viewer.polytope_vertices(G, g, (lower, upper)).shape == (0, 2)
 
 
 def test_single_agent_and_missing_scenario(tmp_path, runs):

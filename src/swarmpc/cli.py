@@ -12,7 +12,7 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from types import FrameType
 from typing import Annotated, Any, NoReturn
@@ -21,7 +21,7 @@ import numpy as np
 import typer
 
 from swarmpc._interrupts import INTERRUPTED, caused_by_interrupt
-from swarmpc.config import MAX_AGENTS, Scenario, ScenarioError, load_scenario
+from swarmpc.config import MAX_AGENTS, Scenario, ScenarioError, executor_problem, load_scenario
 from swarmpc.simulation.outdir import OutputError, RunFolderTarget
 
 app = typer.Typer(
@@ -32,35 +32,35 @@ app = typer.Typer(
 )
 
 
-class Method(str, Enum):
+class Method(StrEnum):
     admm = "admm"
     centralized = "centralized"
 
 
-class Collision(str, Enum):
+class Collision(StrEnum):
     hard = "hard"
     soft = "soft"
 
 
-class Guess(str, Enum):
+class Guess(StrEnum):
     auto = "auto"
     rrt = "rrt"
     straight = "straight"
     shifted = "shifted"
 
 
-class ExecutorName(str, Enum):
+class ExecutorName(StrEnum):
     serial = "serial"
     process = "process"
     ray = "ray"
 
 
-class PlantName(str, Enum):
+class PlantName(StrEnum):
     double_integrator = "double_integrator"
     mujoco = "mujoco"
 
 
-class LocalSolver(str, Enum):
+class LocalSolver(StrEnum):
     qp = "qp"
     ipopt = "ipopt"
 
@@ -133,14 +133,18 @@ def run(
     plant: Annotated[PlantName | None, typer.Option(
         help="what the inputs drive: the ideal model or MuJoCo rigid bodies (settings: the scenario's plant:)")] = None,
     executor: Annotated[
-        ExecutorName, typer.Option(help="where the ADMM agents' local solves run (admm only)")
-    ] = ExecutorName.serial,
+        ExecutorName | None, typer.Option(
+            help="where the ADMM agents' local solves run (admm only) (default: the scenario's executor.type, "
+            "serial)")
+    ] = None,
     workers: Annotated[
         int | None,
-        typer.Option(min=1, help="worker processes / Ray actors [available cores; Ray: the cluster's CPUs]"),
+        typer.Option(min=1, help="worker processes / Ray actors [the scenario's executor.workers; available "
+                     "cores; Ray: the cluster's CPUs]"),
     ] = None,
     address: Annotated[
-        str | None, typer.Option(help="Ray cluster to join (auto, ray://host:port) [start a local Ray]")
+        str | None, typer.Option(help="Ray cluster to join (auto, ray://host:port) [the scenario's "
+                                 "executor.address; start a local Ray]")
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar, no paragraph")] = False,
     overwrite: Annotated[bool, typer.Option(
@@ -149,9 +153,11 @@ def run(
     """Run a scenario in closed loop and write summary.json, trajectory.npz and a figure.
 
     The output path is checked before the run: an existing path there is refused unless it is a
-    swarmpc run folder and --overwrite is given."""
+    swarmpc run folder and --overwrite is given. --executor, --workers and --address override
+    the scenario's executor section."""
     check_generator_params(seed, agents, dim)
-    check_executor_options(executor, workers, address)
+    if executor is not None:
+        check_executor_options(executor.value, workers, address)
     try:
         params: dict[str, Any] = {"agents": agents, "dim": dim, "seed": seed}
         scn = resolve_scenario(scenario, **params)
@@ -176,10 +182,11 @@ def run(
             scn = scn.with_updates(plant={**physics, "type": plant.value})
     except ScenarioError as err:
         fail(str(err))
+    scn = with_executor_options(scn, executor, workers, address)
     check_plant_available(scn)
     target = reserve_output(out or Path("results") / scn.name, overwrite, scn)
     try:
-        runner = build_executor(scn, executor, workers, address)
+        runner = build_executor(scn, "--executor" if executor is not None else "executor.type")
     except BaseException:
         target.discard()
         raise
@@ -204,38 +211,58 @@ def reserve_output(path: Path, overwrite: bool, scn: Scenario) -> RunFolderTarge
         fail(str(err))
 
 
-def check_executor_options(executor: ExecutorName, workers: int | None, address: str | None) -> None:
-    """``--workers`` and ``--address`` only mean something with the executors that use them."""
-    if workers is not None and executor is ExecutorName.serial:
-        fail("--workers: only with --executor process or ray")
-    if address is not None and executor is not ExecutorName.ray:
-        fail("--address: only with --executor ray")
-    if address is not None and not address.strip():
-        fail("--address: must not be empty (auto, ray://host:port)")
+EXECUTOR_OPTION_NAMES = {"type": "--executor", "workers": "--workers", "address": "--address"}
+"""How :func:`swarmpc.config.executor_problem` names the executor keys on the command line."""
 
 
-def build_executor(
-    scn: Scenario, executor: ExecutorName, workers: int | None, address: str | None
-) -> _WorkersIgnoreCtrlC | None:
-    """The run's executor (``None``: the solver's own serial one). Only ADMM has local solves to
-    distribute, so a non-serial executor with the centralised solver is an error, not a no-op."""
-    from swarmpc.solvers.executors import make_executor
+def check_executor_options(executor: str, workers: int | None, address: str | None) -> None:
+    """``--workers`` and ``--address`` only mean something with the executors that use them
+    (``executor``: the type they go with, the option's or the scenario's)."""
+    problem = executor_problem(executor, workers, address, EXECUTOR_OPTION_NAMES)
+    if problem is not None:
+        fail(problem)
 
-    if executor is ExecutorName.serial:
-        return None
-    if scn.solver.method != "admm":
-        fail(f"--executor: {executor.value} only applies to solver.method admm, "
-             f"this run uses {scn.solver.method}")
-    if executor is ExecutorName.ray:
-        options: dict[str, Any] = {"address": address, "actors": workers}
+
+def with_executor_options(
+    scn: Scenario, executor: ExecutorName | None, workers: int | None, address: str | None
+) -> Scenario:
+    """The scenario with the command line's executor options over its ``executor`` section (the
+    command line wins): ``--executor`` replaces the section; ``--workers`` or ``--address`` alone
+    change that key of it. Only ADMM has local solves to distribute, so a non-serial executor with
+    the centralised solver is an error, not a no-op."""
+    if executor is None and workers is None and address is None:
+        return scn
+    kind = executor.value if executor is not None else scn.executor.type
+    check_executor_options(kind, workers, address)
+    if kind != "serial" and scn.solver.method != "admm":
+        fail(f"--executor: {kind} only applies to solver.method admm, this run uses {scn.solver.method}")
+    if executor is not None:
+        section = {"type": kind, "workers": workers, "address": address}
     else:
-        options = {"workers": workers}
+        given = {"workers": workers, "address": address}
+        section = {**scn.executor.model_dump(), **{key: value for key, value in given.items() if value is not None}}
     try:
-        return _WorkersIgnoreCtrlC(make_executor(executor.value, **options), executor.value)
+        return scn.with_updates(executor=section)
+    except ScenarioError as err:
+        fail(str(err))
+
+
+def build_executor(scn: Scenario, option: str = "--executor") -> _WorkersIgnoreCtrlC | None:
+    """The run's executor, as the scenario's ``executor`` section says (``None``: serial, the
+    solver's own). This function's caller owns it and closes it. ``option`` names the choice in a
+    refusal (the command line's ``--executor`` or the scenario's ``executor.type``)."""
+    from swarmpc.simulation.controller import section_executor
+
+    kind = scn.executor.type
+    if kind == "serial":
+        return None
+    try:
+        made = section_executor(scn.executor)
     except ValueError as err:  # RayExecutor: Ray is not importable
-        if executor is ExecutorName.ray:
-            fail("--executor: ray needs Ray, which is not installed: pip install 'swarmpc[ray]'")
-        fail(f"--executor: {str(err).splitlines()[0]}")
+        if kind == "ray":
+            fail(f"{option}: ray needs Ray, which is not installed: pip install 'swarmpc[ray]'")
+        fail(f"{option}: {str(err).splitlines()[0]}")
+    return None if made is None else _WorkersIgnoreCtrlC(made, kind)
 
 
 class _WorkersIgnoreCtrlC:
@@ -492,9 +519,8 @@ def animate(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out file")] = False,
 ) -> None:
     """Animate a run: moving agents with their delta boxes, trails and a time stamp."""
-    from swarmpc.plots import AnimationWriterError, RunDataError
+    from swarmpc.plots import AnimationWriterError, RunDataError, load_run
     from swarmpc.plots import animate as write_animation
-    from swarmpc.plots import load_run
 
     if format not in ("gif", "mp4"):
         fail(f"--format: must be gif or mp4, got {format!r}")
@@ -574,12 +600,16 @@ def reproduce(
 def bench(
     out: Annotated[Path, typer.Option(help="folder for bench.md and bench.json")] = Path("results/bench"),
     quick: Annotated[bool, typer.Option("--quick", help="M in {4, 8}, one seed: a smoke run")] = False,
-    families: Annotated[str, typer.Option(help="comma-separated: circle, sphere, random, spread")] = "circle,sphere,random",
+    families: Annotated[
+        str, typer.Option(help="comma-separated: circle, sphere, random, spread")] = "circle,sphere,random",
     sizes: Annotated[str | None, typer.Option(help="comma-separated swarm sizes [4,8,16,32,64]")] = None,
-    seeds: Annotated[int | None, typer.Option(min=1, help="seeds of the random and spread families [5; quick 1]")] = None,
+    seeds: Annotated[
+        int | None, typer.Option(min=1, help="seeds of the random and spread families [5; quick 1]")] = None,
     first_seed: Annotated[int, typer.Option(min=0, help="first seed of the random and spread families")] = 0,
-    jobs: Annotated[int | None, typer.Option(min=1, help="cases side by side [cores; 1 with a parallel executor]")] = None,
-    executor: Annotated[ExecutorName, typer.Option(help="where each ADMM case's local solves run")] = ExecutorName.serial,
+    jobs: Annotated[
+        int | None, typer.Option(min=1, help="cases side by side [cores; 1 with a parallel executor]")] = None,
+    executor: Annotated[
+        ExecutorName, typer.Option(help="where each ADMM case's local solves run")] = ExecutorName.serial,
     workers: Annotated[int | None, typer.Option(min=1, help="process-pool size / Ray actors")] = None,
     budget: Annotated[float, typer.Option(min=1.0, help="wall-time budget per case [s]")] = 600.0,
     central_max_agents: Annotated[int, typer.Option(min=0, help="largest M also run centralised")] = 16,

@@ -55,6 +55,12 @@ MAX_STEPS = 100_000
 """Most MPC steps of a run (``stop.max_steps``)."""
 MAX_ADMM_ITERATIONS = 100_000
 """Highest ADMM iteration cap per MPC step (``solver.max_iter``)."""
+MAX_LOCAL_ITERATIONS = 100_000
+"""Highest iteration cap of one IPOPT or OSQP solve (``solver.ipopt.max_iter``, ``solver.qp.max_iter``)."""
+MAX_WORKERS = 1024
+"""Most worker processes or Ray actors (``executor.workers``)."""
+MAX_ADDRESS_CHARS = 500
+"""Longest Ray cluster address (``executor.address``)."""
 MAX_OBSTACLES = 256
 """Most obstacles in a scenario."""
 MAX_FACETS = 64
@@ -132,7 +138,7 @@ def _leaf_problem(value: Any, kind: type) -> str | None:
     if isinstance(value, (bool, str)):
         return f"expected {'an integer' if kind is int else 'a number'}, got {_type_name(value)}"
     if isinstance(value, numbers.Integral):
-        if kind is float and abs(value) > MAX_MAGNITUDE:
+        if kind is float and abs(int(value)) > MAX_MAGNITUDE:
             return f"magnitude must be <= {MAX_MAGNITUDE:g}"
         return None
     if not isinstance(value, numbers.Real):
@@ -251,7 +257,7 @@ class Workspace(_Frozen):
     def _ordered(self) -> Workspace:
         if len(self.lower) != len(self.upper):
             raise ValueError("lower and upper differ in length")
-        if any(lo >= hi for lo, hi in zip(self.lower, self.upper)):
+        if any(lo >= hi for lo, hi in zip(self.lower, self.upper, strict=True)):
             raise ValueError("lower must be below upper on every axis")
         return self
 
@@ -358,6 +364,152 @@ class Agent(_Frozen):
         return value
 
 
+class ADMMOptions(_Frozen):
+    """The ADMM knobs beyond the flat ``solver`` keys (``solver.admm``).
+
+    The keys and defaults are those of :class:`swarmpc.solvers.admm.config.ADMMConfig`, which
+    :meth:`~swarmpc.solvers.admm.config.ADMMConfig.from_options` builds from the ``solver``
+    section; ``rho_min`` and ``rho_max`` are its ``rho_bounds``.
+    """
+
+    stall_window: int | None = Field(
+        default=5, ge=1, le=MAX_ADMM_ITERATIONS,
+        description="Iterations without a 10 % drop of the primal residual after which ADMM counts as stalled: "
+        "rho is stiffened by `stall_rho_factor` (or, at `rho_max`, the step ends through the repair pass). "
+        "`null`: never stalled.",
+    )
+    stall_rho_factor: float | None = Field(
+        default=2.0, gt=1,
+        description="Factor on rho when ADMM stalls (capped at `rho_max`). `null`: a stall ends the iterations.",
+    )
+    rho_min: float = Field(
+        default=0.01, gt=0, description="Smallest rho that `adaptive_rho` may lower the penalty to."
+    )
+    rho_max: float = Field(
+        default=1000.0, gt=0,
+        description="Largest rho that `adaptive_rho` and the stall rule may raise the penalty to; >= `rho_min`.",
+    )
+    carry_multipliers: Literal["stable", "always", "never"] = Field(
+        default="stable",
+        description="Which consensus multipliers a new MPC step starts from (shifted by one step) rather than "
+        "zero: `always` every one (the paper), `never` none, `stable` those of agents whose neighbours are "
+        "those of the previous step's end (a multiplier whose counterpart was dropped can hold agents short "
+        "of free goals).",
+    )
+    warm_start: bool = Field(
+        default=True,
+        description="Start each local IPOPT solve after the first of an MPC step from the previous iterate's "
+        "multipliers too, not only its primal point (fewer IPOPT iterations to the same solution).",
+    )
+    repair: bool = Field(
+        default=True,
+        description="A step that ends without consensus goes through the repair pass (every coupled agent "
+        "re-plans against its neighbours' plans held fixed), and fallbacks that break the separation are "
+        "re-planned around. `false`: the last iterate's plans are applied as they are, which may leave pairs "
+        "in conflict (a deadline stop is repaired anyway).",
+    )
+    repair_rounds: int = Field(
+        default=3, ge=1, le=100,
+        description="Repair passes at most per step: after a pass, candidate pairs whose repaired plans conflict "
+        "are coupled and the pass runs again.",
+    )
+    owner_weight: float = Field(
+        default=5.0, gt=0,
+        description="Weight of an agent's own block in the consensus: its penalty is rho times this, and the "
+        "consensus average weighs its own positions this much against 1 for each neighbour's copy.",
+    )
+    dynamic_copies: bool = Field(
+        default=False,
+        description="An agent's copies of its neighbours are whole trajectories obeying their dynamics and "
+        "limits (larger local problems) instead of free positions; not with `solver.local: qp`.",
+    )
+    closing_time: float | None = Field(
+        default=None, ge=0,
+        description="Seconds of closing speed added to the coupling reach: pairs approaching at relative speed "
+        "v couple within Δ + d_min + `coupling_margin` + this × v. `null`: 0.1 with hard constraints and no "
+        "`solver.coupling_margin`, else 0.",
+    )
+
+    @model_validator(mode="after")
+    def _ordered_bounds(self) -> ADMMOptions:
+        if self.rho_min > self.rho_max:
+            raise ValueError(f"rho_max: must be >= rho_min ({self.rho_min}), got {self.rho_max}")
+        return self
+
+
+class IpoptOptions(_Frozen):
+    """IPOPT's options for every NLP solve (``solver.ipopt``): the centralised problem and the ADMM
+    agents' local problems (and the QP path's fallback). The defaults are
+    :data:`swarmpc.formulation.ocp.IPOPT_OPTIONS` and ``LOCAL_IPOPT_OPTIONS``."""
+
+    max_iter: int = Field(
+        default=300, ge=1, le=MAX_LOCAL_ITERATIONS, description="IPOPT iterations at most per solve."
+    )
+    tol: float = Field(default=1e-6, gt=0, description="IPOPT's convergence tolerance (its `tol`).")
+    acceptable_tol: float = Field(
+        default=1e-4, gt=0,
+        description="IPOPT's acceptable tolerance: a solve that stays within it for IPOPT's acceptable "
+        "iterations counts as solved.",
+    )
+    mu_strategy: Literal["adaptive", "monotone"] = Field(
+        default="adaptive", description="IPOPT's barrier parameter update (its `mu_strategy`)."
+    )
+    local_scaling: bool = Field(
+        default=False,
+        description="Let MUMPS scale the KKT systems of the agents' local problems (the centralised problem "
+        "always scales); off by default: a warm-started local solve is mostly the linear solver's fixed "
+        "cost, which the scaling adds to without changing the solutions.",
+    )
+
+
+class QPOptions(_Frozen):
+    """The QP local step's tolerances (``solver.qp``, used with ``solver.local: qp``): OSQP's, the
+    rows' safety margin and the certificate loop's. The keys and defaults are those of
+    :class:`swarmpc.solvers.qp_local.QPLocalOptions`."""
+
+    eps_abs: float = Field(default=1e-6, gt=0, description="OSQP's absolute tolerance.")
+    eps_rel: float = Field(default=1e-6, ge=0, description="OSQP's relative tolerance.")
+    max_iter: int = Field(
+        default=4000, ge=1, le=MAX_LOCAL_ITERATIONS, description="OSQP iterations at most per QP."
+    )
+    polish: bool = Field(
+        default=True,
+        description="OSQP's polishing: solve the KKT system of the guessed active set, so an answer meets its "
+        "active rows to machine precision.",
+    )
+    check_termination: int = Field(
+        default=5, ge=1, le=MAX_LOCAL_ITERATIONS,
+        description="OSQP tests for termination every this many iterations.",
+    )
+    margin: float = Field(
+        default=1e-5, ge=0,
+        description="Tightening [m] of every separation, plane, workspace and speed row against OSQP's primal "
+        "tolerance, so that d_min itself is never eaten.",
+    )
+    max_rounds: int = Field(
+        default=5, ge=1, le=MAX_LOCAL_ITERATIONS,
+        description="Certificate rounds (QPs) per local step; every round's plan is safe, so a capped loop is "
+        "an inexact but safe step.",
+    )
+    plan_tol: float = Field(
+        default=1e-6, ge=0, description="The certificate loop stops when the QP's plan moved less than this [m]."
+    )
+    certificate_tol: float = Field(
+        default=1e-6, ge=0,
+        description="The certificate loop stops when no certificate of a row within `active_band` of its "
+        "bound moved more than this.",
+    )
+    active_band: float = Field(
+        default=1e-3, ge=0,
+        description="A row within this [m] of its bound counts as near it for `certificate_tol`.",
+    )
+    speed_facets: int | None = Field(
+        default=None, ge=4, le=MAX_FACETS,
+        description="Facets of the inner polytope that stands in for the speed limit. `null`: 16 in 2D, the "
+        "26 cube directions in 3D.",
+    )
+
+
 REMOVED_SOLVER_KEYS: typing.Mapping[str, str] = types.MappingProxyType({
     "component_stop": "it was slower to the goals; docs/lab/admm.md#component-stop",
 })
@@ -370,7 +522,10 @@ class SolverConfig(_Frozen):
     method: Literal["admm", "centralized"] = "admm"
     rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
     max_iter: int = Field(default=100, ge=1, le=MAX_ADMM_ITERATIONS, description="ADMM iteration cap per MPC step")
-    tol: float = Field(default=1e-3, gt=0, description="ADMM primal/dual residual tolerance [m] (the random and spread built-ins use 0.005)")
+    tol: float = Field(
+        default=1e-3, gt=0,
+        description="ADMM primal/dual residual tolerance [m] (the random and spread built-ins use 0.005)",
+    )
     adaptive_rho: bool = Field(default=False, description="residual balancing of rho")
     coupling_margin: float | None = Field(
         default=None, ge=0,
@@ -412,6 +567,19 @@ class SolverConfig(_Frozen):
         "A deadline that binds makes the run depend on the machine's speed. null: no deadline (steps whose "
         "critical path exceeds dt still count in summary.json deadline_misses)",
     )
+    admm: ADMMOptions = Field(
+        default=ADMMOptions(),
+        description="ADMM's further knobs: the stall rule, the penalty's bounds, multipliers carried across "
+        "steps, warm starts, the repair pass, the owner weight, copy form and closing-speed coupling",
+    )
+    ipopt: IpoptOptions = Field(
+        default=IpoptOptions(),
+        description="IPOPT's iteration cap, tolerances and barrier strategy, for every NLP solve",
+    )
+    qp: QPOptions = Field(
+        default=QPOptions(),
+        description="the QP local step's tolerances (`local: qp`): OSQP's, the rows' margin, the certificate loop",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -422,6 +590,12 @@ class SolverConfig(_Frozen):
                 if key in data:
                     raise ValueError(f"{key}: removed ({why})")
         return data
+
+    @model_validator(mode="after")
+    def _qp_needs_free_copies(self) -> SolverConfig:
+        if self.local == "qp" and self.admm.dynamic_copies:
+            raise ValueError("admm.dynamic_copies: local: qp needs free copies (dynamic_copies: false)")
+        return self
 
 
 class StopConfig(_Frozen):
@@ -643,6 +817,57 @@ class DeadlockConfig(_Frozen):
     )
 
 
+def executor_problem(
+    kind: str, workers: int | None, address: str | None, names: typing.Mapping[str, str]
+) -> str | None:
+    """What is wrong with the executor choice ``kind`` / ``workers`` / ``address``, as one line
+    that starts with the offending key; None when it is consistent.
+
+    ``workers`` and ``address`` only mean something with the executors that use them. ``names``
+    spells the three keys (``type``, ``workers``, ``address``) the way the caller's user wrote
+    them: the scenario's ``executor.*`` keys or the command line's ``--executor`` options, so
+    both say the same thing in their own words.
+    """
+    if workers is not None and kind == "serial":
+        return f"{names['workers']}: only with {names['type']} process or ray"
+    if address is not None and kind != "ray":
+        return f"{names['address']}: only with {names['type']} ray"
+    if address is not None and not address.strip():
+        return f"{names['address']}: must not be empty (auto, ray://host:port)"
+    return None
+
+
+class ExecutorConfig(_Frozen):
+    """Where the ADMM agents' local solves run (the ``executor`` section): the run's controller
+    creates this executor and closes it when the run ends. ``swarmpc run --executor``,
+    ``--workers`` and ``--address`` override it."""
+
+    type: Literal["serial", "thread", "process", "ray"] = Field(
+        default="serial",
+        description="`serial`: one after another in the run's process; `thread`: a thread pool; `process`: "
+        "worker processes (one core each); `ray`: Ray actors, on this machine or a cluster. The plans are "
+        "the same, bit for bit, whichever runs them. Anything but `serial` needs `solver.method: admm`.",
+    )
+    workers: int | None = Field(
+        default=None, ge=1, le=MAX_WORKERS,
+        description="Threads, worker processes or Ray actors. `null`: the pool's default (threads: Python's, "
+        "processes: the available cores, Ray: the cluster's CPUs). Not with `serial`.",
+    )
+    address: str | None = Field(
+        default=None, max_length=MAX_ADDRESS_CHARS,
+        description="The Ray cluster to join (`auto`, `ray://host:port`); only with `ray`. `null`: start a "
+        "local Ray.",
+    )
+
+    @model_validator(mode="after")
+    def _options_used(self) -> ExecutorConfig:
+        names = {"type": "executor.type", "workers": "workers", "address": "address"}
+        problem = executor_problem(self.type, self.workers, self.address, names)
+        if problem is not None:
+            raise ValueError(problem)
+        return self
+
+
 class Scenario(_Frozen):
     """A complete, validated multi-agent scenario (every key: docs/scenario-reference.md)."""
 
@@ -695,6 +920,10 @@ class Scenario(_Frozen):
         default=DeadlockConfig(),
         description="the deadlock and detour rules: when a stalled agent is detoured, how, and knots untied "
         "in 3D; `enabled: false` switches them off",
+    )
+    executor: ExecutorConfig = Field(
+        default=ExecutorConfig(),
+        description="where the ADMM agents' local solves run (default: serially, in the run's process)",
     )
 
     @field_validator("name")
@@ -949,6 +1178,9 @@ def _consistency_errors(scn: Scenario) -> list[str]:
     errors = _shape_errors(scn)
     if errors:
         return errors[:1]
+    if scn.executor.type != "serial" and scn.solver.method != "admm":
+        return [f"executor.type: {scn.executor.type} only applies to solver.method admm, "
+                f"this scenario uses {scn.solver.method}"]
     bodies = scn.bodies
     for field in ("start", "goal"):
         positions = np.array([_full_state(getattr(a, field), scn.dim)[: scn.dim] for a in scn.agents])
@@ -1068,7 +1300,8 @@ class _BoundedLoader(yaml.SafeLoader):
 
     def compose_node(self, parent: Any, index: Any) -> Any:
         if self.depth >= MAX_YAML_DEPTH:
-            raise _Refused(f"nested deeper than {MAX_YAML_DEPTH} levels", self.peek_event().start_mark)
+            event = self.peek_event()  # type: ignore[no-untyped-call]  # PyYAML's stubs leave it unannotated
+            raise _Refused(f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark)
         self.depth += 1
         try:
             return super().compose_node(parent, index)

@@ -53,11 +53,10 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from mcap.writer import CompressionType, Writer
 
 from swarmpc.config import Obstacle
-from swarmpc.model.geometry import inf_separation_ratio
+from swarmpc.model.geometry import inf_separation_ratio, polytope_vertices
 from swarmpc.palette import agent_colors
 from swarmpc.simulation.outdir import OutputError, refuse_existing_file
 from swarmpc.simulation.rundata import TRAJECTORY_FILE, RunData, RunDataError, load_run
-from swarmpc.viewer import polytope_vertices
 
 __all__ = [
     "CSV_COLUMNS",
@@ -554,8 +553,7 @@ class _Scene:
         points = np.vstack([run.positions.reshape(-1, run.dim), run.goal_positions])
         lower = np.minimum(lower, points.min(axis=0)) - 1.0
         upper = np.maximum(upper, points.max(axis=0)) + 1.0
-        vertices = polytope_vertices(G, g, lower, upper)
-        return np.empty((0, run.dim)) if vertices is None else vertices
+        return polytope_vertices(G, g, (lower, upper))
 
     def _entity(
         self, entity_id: str, k: int, metadata: dict[str, str] | None = None, **primitives: Any

@@ -21,29 +21,32 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import matplotlib
 import numpy as np
 from matplotlib import animation, colormaps
-from matplotlib.colors import to_rgba
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Polygon, Rectangle
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
-from scipy.optimize import linprog
-from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
+from scipy.spatial import ConvexHull, QhullError
 
 from swarmpc import palette
 from swarmpc.config import Scenario
-from swarmpc.model.geometry import body_separation_ratio, count_body_collisions
+from swarmpc.frames import even_indices, frame_indices
+from swarmpc.model.geometry import body_separation_ratio, count_body_collisions, polytope_vertices
 from swarmpc.simulation.rundata import AdmmResiduals as AdmmResiduals
 from swarmpc.simulation.rundata import MissingRunFileError as MissingRunFileError
 from swarmpc.simulation.rundata import RunData as RunData
 from swarmpc.simulation.rundata import RunDataError as RunDataError
 from swarmpc.simulation.rundata import load_run as load_run
+
+if TYPE_CHECKING:
+    from matplotlib.typing import RcKeyType
 
 PathLike = str | os.PathLike[str]
 
@@ -69,72 +72,6 @@ class AnimationWriterError(RuntimeError):
 def agent_colors(m: int) -> list[tuple[float, float, float, float]]:
     """One RGBA colour per agent, from :func:`swarmpc.palette.agent_colors` (the viewer's too)."""
     return [to_rgba(color) for color in palette.agent_colors(m)]
-
-
-def polytope_vertices(
-    G: np.ndarray, g: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray:
-    """Vertices of the polytope {p : G p <= g}, optionally clipped to an axis-aligned box.
-
-    Parameters
-    ----------
-    G : np.ndarray
-        (k, d) face normals.
-    g : np.ndarray
-        (k,) offsets.
-    bounds : (lower, upper), optional
-        Clip to this box; needed when the set is unbounded.
-
-    Returns
-    -------
-    np.ndarray
-        (n, d) vertices of the convex hull, (0, d) when the set is empty or flat.
-
-    Raises
-    ------
-    ValueError
-        When the set is unbounded and no ``bounds`` are given, or the shapes disagree.
-    """
-    G = np.atleast_2d(np.asarray(G, float))
-    g = np.asarray(g, float).reshape(-1)
-    d = G.shape[1]
-    if G.shape[0] != g.size:
-        raise ValueError(f"G has {G.shape[0]} rows but g has {g.size} entries")
-    if bounds is not None:
-        lower = np.broadcast_to(np.asarray(bounds[0], float), (d,))
-        upper = np.broadcast_to(np.asarray(bounds[1], float), (d,))
-        eye = np.eye(d)
-        G = np.vstack([G, eye, -eye])
-        g = np.concatenate([g, upper, -lower])
-    norms = np.linalg.norm(G, axis=1)
-    if np.any(norms == 0):
-        raise ValueError("G has a zero row")
-    A, b = G / norms[:, None], g / norms
-    # Chebyshev centre: max r  s.t.  a_i^T x + r <= b_i  (rows of A have unit norm).
-    cost = np.zeros(d + 1)
-    cost[-1] = -1.0
-    lp = linprog(
-        cost,
-        A_ub=np.hstack([A, np.ones((len(b), 1))]),
-        b_ub=b,
-        bounds=[(None, None)] * d + [(0, None)],
-        method="highs",
-    )
-    if lp.status == 3:
-        raise ValueError("the polytope is unbounded: pass bounds to clip it")
-    if lp.status != 0 or lp.x[-1] <= 1e-9:
-        return np.empty((0, d))
-    if bounds is None:
-        for direction in np.vstack([np.eye(d), -np.eye(d)]):  # bounded iff every extent is finite
-            extent = linprog(-direction, A_ub=A, b_ub=b, bounds=[(None, None)] * d, method="highs")
-            if extent.status == 3:
-                raise ValueError("the polytope is unbounded: pass bounds to clip it")
-    try:
-        points = HalfspaceIntersection(np.hstack([A, -b[:, None]]), lp.x[:d]).intersections
-        hull = ConvexHull(points)
-    except QhullError:
-        return np.empty((0, d))
-    return hull.points[hull.vertices]
 
 
 def polygon_vertices_2d(
@@ -181,7 +118,7 @@ def _hull_faces(vertices: np.ndarray) -> list[np.ndarray]:
     except QhullError:
         return []
     groups: dict[tuple[float, ...], set[int]] = {}
-    for simplex, equation in zip(hull.simplices, hull.equations):
+    for simplex, equation in zip(hull.simplices, hull.equations, strict=True):
         key = tuple(np.round(equation, 6) + 0.0)
         groups.setdefault(key, set()).update(int(i) for i in simplex)
     faces = []
@@ -198,35 +135,6 @@ def _hull_faces(vertices: np.ndarray) -> list[np.ndarray]:
 
 
 # --------------------------------------------------------------------------------- helpers
-def _even_indices(count: int, n: int) -> np.ndarray:
-    """``min(n, count)`` distinct, increasing, evenly spread indices in [0, count) with both ends."""
-    if count <= 0 or n <= 0:
-        return np.zeros(0, int)
-    n = min(n, count)
-    if n == 1:
-        return np.zeros(1, int)
-    # floor(x + 0.5) is monotone with unit steps, so spacing >= 1 keeps the indices distinct.
-    return np.floor(np.linspace(0, count - 1, n) + 0.5).astype(int)
-
-
-def frame_indices(num_states: int, max_frames: int) -> np.ndarray:
-    """The state indices an animation shows: ``min(num_states, max_frames)`` evenly spread ones.
-
-    Parameters
-    ----------
-    num_states : int
-        Number of recorded states (T+1).
-    max_frames : int
-        Frame cap.
-
-    Returns
-    -------
-    np.ndarray
-        Increasing distinct indices including the first and the last state.
-    """
-    return _even_indices(num_states, max_frames)
-
-
 def _view_limits(run: RunData) -> tuple[np.ndarray, np.ndarray]:
     """Axis limits covering the workspace (or scenario bounds), the paths and the goals."""
     lower, upper = _scenario(run).bounds()
@@ -288,7 +196,9 @@ def _plain(value: Any) -> str:
     return str(value).replace("$", r"\$")
 
 
-def _new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:
+def _new_figure(
+    width: float, height: float, layout: Literal["constrained", "compressed", "tight"] | None = "constrained"
+) -> Figure:
     fig = Figure(figsize=(width, height), layout=layout)
     FigureCanvasAgg(fig)
     return fig
@@ -340,10 +250,10 @@ def _draw_paths_planar(
     pos = run.positions[:, :, list(axes)]
     goals = run.goals[:, list(axes)]
     halves = run.body_half_sizes[:, list(axes)]
-    instants = _even_indices(run.num_steps + 1, snapshots)
-    alphas = np.linspace(0.10, 0.28, max(len(instants), 1))
+    instants = even_indices(run.num_steps + 1, snapshots)
+    alphas = np.linspace(0.10, 0.28, len(instants))
     for i, color in enumerate(colors):
-        for k, alpha in zip(instants, alphas):
+        for k, alpha in zip(instants, alphas, strict=True):
             ax.add_patch(_box_patch(pos[k, i], halves[i], color, float(alpha), zorder=2,
                                     gid=f"{GID_BODY}:{i}:{int(k)}"))
         ax.plot(pos[:, i, 0], pos[:, i, 1], color=color, linewidth=1.6, zorder=3, label=f"agent {i}")
@@ -506,7 +416,7 @@ def make_convergence_figure(run: RunData, steps: Sequence[int] | None = None) ->
     shades = colormaps["viridis"](np.linspace(0.0, 0.8, len(chosen)))
     tol = run.summary.get("admm_tol")
     for ax, values, label in ((ax_p, admm.primal, "primal"), (ax_d, admm.dual, "dual")):
-        for step, color in zip(chosen, shades):
+        for step, color in zip(chosen, shades, strict=True):
             row = np.where(values[step] > 0, values[step], np.nan)
             iters = np.arange(1, row.size + 1)
             keep = np.isfinite(row)
@@ -523,7 +433,7 @@ def make_convergence_figure(run: RunData, steps: Sequence[int] | None = None) ->
     ax_p.legend(fontsize=8)
     mpc_steps = np.arange(total)
     ax_it.bar(mpc_steps, admm.iterations, width=1.0, color="0.7")
-    for step, color in zip(chosen, shades):
+    for step, color in zip(chosen, shades, strict=True):
         ax_it.bar([step], [admm.iterations[step]], width=1.0, color=color)
     ax_it.set_xlabel("MPC step")
     ax_it.set_ylabel("ADMM iterations")
@@ -567,11 +477,12 @@ def _planar_movers(
     halves = run.body_half_sizes[:, list(axes)]
     for i, color in enumerate(colors):
         ax.plot(*run.goals[i, list(axes)], "*", color=color, markeredgecolor="k", markersize=11, zorder=4)
-    boxes = [ax.add_patch(_box_patch(pos[0, i], halves[i], c, 0.3, zorder=2, gid=f"{GID_BODY}:{i}"))
-             for i, c in enumerate(colors)]
+    boxes = [_box_patch(pos[0, i], halves[i], c, 0.3, zorder=2, gid=f"{GID_BODY}:{i}") for i, c in enumerate(colors)]
+    for box in boxes:
+        ax.add_patch(box)
     trails = [ax.plot([], [], color=c, linewidth=1.5, zorder=3)[0] for c in colors]
     dots = [ax.plot([], [], "o", color=c, markeredgecolor="k", markersize=5, zorder=5)[0] for c in colors]
-    numbers = [ax.text(*pos[0, i], f" {i}", color=c, fontsize=8, fontweight="bold", zorder=6)
+    numbers = [ax.text(pos[0, i, 0], pos[0, i, 1], f" {i}", color=c, fontsize=8, fontweight="bold", zorder=6)
                for i, c in enumerate(colors)]
 
     def update(k: int, first: int) -> None:
@@ -689,7 +600,8 @@ def animate(
     if fmt == "mp4" and ffmpeg_path is None:
         raise AnimationWriterError(
             "mp4 animations need ffmpeg, which was not found: install ffmpeg "
-            "(e.g. `pip install imageio-ffmpeg` or `apt-get install ffmpeg`) or write a GIF instead (--format gif, fmt='gif')"
+            "(e.g. `pip install imageio-ffmpeg` or `apt-get install ffmpeg`) "
+            "or write a GIF instead (--format gif, fmt='gif')"
         )
     frames = frame_indices(run.num_steps + 1, max_frames)
     times = run.t[frames]
@@ -722,13 +634,16 @@ def animate(
     fig.set_layout_engine("none")  # freeze the layout: every frame has the same geometry
     writer: animation.AbstractMovieWriter
     if fmt == "gif":
-        writer = animation.PillowWriter(fps=fps)
+        # The writers take any positive frame rate (frame duration 1000 / fps, ffmpeg's -r); the stubs say int.
+        writer = animation.PillowWriter(fps=fps)  # type: ignore[arg-type]
     else:
-        writer = animation.FFMpegWriter(fps=fps, codec="h264", extra_args=["-pix_fmt", "yuv420p"])
+        writer = animation.FFMpegWriter(
+            fps=fps, codec="h264", extra_args=["-pix_fmt", "yuv420p"]  # type: ignore[arg-type]
+        )
     out.parent.mkdir(parents=True, exist_ok=True)
-    rc = {"animation.ffmpeg_path": ffmpeg_path} if ffmpeg_path else {}
+    rc: dict[RcKeyType, Any] = {"animation.ffmpeg_path": ffmpeg_path} if ffmpeg_path else {}
     with matplotlib.rc_context(rc), writer.saving(fig, str(out), dpi=ANIMATION_DPI):
-        for k, stamp in zip(frames, times):
+        for k, stamp in zip(frames, times, strict=True):
             first = max(0, int(k) - trail)
             for update in updates:
                 update(int(k), first)
@@ -754,7 +669,7 @@ def plot_run(run_dir: PathLike, out: PathLike | None = None) -> list[Path]:
     list of Path
         ``trajectory.png`` and, when the run has ADMM residuals, ``convergence.png``.
     """
-    run = load_run(run_dir)
+    run = load_run(Path(run_dir))
     folder = Path(out) if out is not None else run.run_dir
     written = [plot_trajectories(run, folder / "trajectory.png")]
     if run.admm is not None and run.admm.primal.shape[0] > 0:

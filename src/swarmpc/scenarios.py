@@ -92,7 +92,7 @@ def circle(agents: int = 8, dim: int = 2, radius: float | None = None, delta: fl
     return {"name": f"circle-{m}" if dim == 2 else f"sphere-{m}", "dim": dim, **PAPER,
             "delta": delta, "seed": seed, "workspace": {"lower": lower, "upper": upper},
             "agents": [{"start": s.round(6).tolist(), "goal": g.round(6).tolist()}
-                       for s, g in zip(starts, goals)],
+                       for s, g in zip(starts, goals, strict=True)],
             "stop": {"max_steps": 600}}
 
 
@@ -120,11 +120,12 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
     rng = np.random.default_rng(seed)
     lower = np.array([-1.5 * box_scale, -1.5 * box_scale, 0.2][:dim])
     upper = np.array([1.5 * box_scale, 1.5 * box_scale, 0.2 + 2.0 * box_scale][:dim])
+    half = np.full(dim, delta)
 
     def spaced(p: np.ndarray, others: np.ndarray) -> bool:  # from every point drawn so far at once
         offsets = p - others
         return bool(np.all(np.linalg.norm(offsets, axis=1) >= min_gap)
-                    and np.all(box_signed_distance(offsets, delta) >= clearance))
+                    and np.all(box_signed_distance(offsets, half) >= clearance))
 
     def sample() -> np.ndarray:
         points, count = np.empty((agents, dim)), 0
@@ -141,7 +142,7 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
             "seed": seed, "limits": {"accel": 1.0}, "solver": dict(SWARM_SOLVER),
             "workspace": {"lower": lower.round(4).tolist(), "upper": upper.round(4).tolist()},
             "agents": [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()}
-                       for s, g in zip(starts, goals)],
+                       for s, g in zip(starts, goals, strict=True)],
             "stop": {"goal_tolerance": 0.1, "max_steps": int(np.ceil(600 * max(box_scale, 1.0)))}}
 
 
@@ -232,16 +233,16 @@ def _argument_problem(key: str, value: Any) -> str | None:
         low, high = _INTEGER_RANGES[key]
         if isinstance(value, bool) or not isinstance(value, numbers.Integral):
             return f"expected an integer, got {short_repr(value)}"
-        if low <= value <= high:
+        if low <= int(value) <= high:
             return None
         allowed = f"{low} or {high}" if high == low + 1 else f"between {low} and {high}"
         return f"must be {allowed}, got {short_repr(value)}"
-    zero_allowed, high = _REAL_RANGES[key]
+    zero_allowed, largest = _REAL_RANGES[key]
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         return f"expected a number, got {short_repr(value)}"
-    number = value if isinstance(value, numbers.Integral) else float(value)
-    if not ((number >= 0 if zero_allowed else number > 0) and number <= high):  # NaN fails too
-        return f"must be {'>=' if zero_allowed else '>'} 0 and <= {high:g}, got {short_repr(value)}"
+    number = int(value) if isinstance(value, numbers.Integral) else float(value)
+    if not ((number >= 0 if zero_allowed else number > 0) and number <= largest):  # NaN fails too
+        return f"must be {'>=' if zero_allowed else '>'} 0 and <= {largest:g}, got {short_repr(value)}"
     return None
 
 

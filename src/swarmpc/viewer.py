@@ -44,14 +44,18 @@ import os
 import webbrowser
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, SupportsFloat
 
 import numpy as np
 
-from swarmpc.model.geometry import as_bodies, pair_deltas
+from swarmpc.frames import frame_indices
+from swarmpc.model.geometry import as_bodies, pair_deltas, polytope_vertices
 from swarmpc.palette import agent_colors
 from swarmpc.simulation.rundata import RunData
 from swarmpc.simulation.rundata import load_run as load_run_data
+
+if TYPE_CHECKING:
+    import plotly.graph_objects as go
 
 __all__ = [
     "MAX_FRAMES",
@@ -145,72 +149,7 @@ def closest_approach(positions: np.ndarray, t: np.ndarray, delta: np.ndarray) ->
     )
 
 
-def frame_indices(steps: int, max_frames: int = MAX_FRAMES, keep: int | None = None) -> np.ndarray:
-    """Time indices of the animation frames: all of them, or about ``max_frames`` evenly spread.
-
-    The first and the last index are always kept, and so is ``keep`` (the closest approach) by
-    replacing the nearest interior index.
-    """
-    if steps <= max_frames:
-        return np.arange(steps)
-    idx = np.unique(np.round(np.linspace(0, steps - 1, max(2, max_frames))).astype(int))
-    if keep is not None and 0 < keep < steps - 1 and keep not in idx:
-        interior = np.arange(1, len(idx) - 1)
-        if len(interior):
-            nearest = interior[np.argmin(np.abs(idx[interior] - keep))]
-            idx[nearest] = keep
-            idx = np.unique(idx)
-    return idx
-
-
 # ----------------------------------------------------------------------------------- geometry
-def _chebyshev_center(G: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """Centre and radius of the largest ball in {p : G p <= g} (None: empty, flat or unbounded)."""
-    from scipy.optimize import linprog
-
-    d = G.shape[1]
-    norms = np.linalg.norm(G, axis=1)
-    cost = np.zeros(d + 1)
-    cost[-1] = -1.0
-    res = linprog(
-        cost,
-        A_ub=np.hstack([G, norms[:, None]]),
-        b_ub=g,
-        bounds=[(None, None)] * d + [(0, None)],
-        method="highs",
-    )
-    if res.status != 0 or res.x is None or res.x[-1] <= 1e-9:
-        return None
-    return res.x[:d], float(res.x[-1])
-
-
-def polytope_vertices(
-    G: np.ndarray, g: np.ndarray, lower: np.ndarray, upper: np.ndarray
-) -> np.ndarray | None:
-    """Vertices of {p : G p <= g} clipped to the box [lower, upper] (None when that is empty).
-
-    In 2D they are ordered counter-clockwise (a polygon); in 3D they are the hull's points.
-    """
-    from scipy.spatial import ConvexHull, HalfspaceIntersection
-
-    G = np.asarray(G, float)
-    g = np.asarray(g, float)
-    d = G.shape[1]
-    eye = np.eye(d)
-    G_all = np.vstack([G, eye, -eye])
-    g_all = np.concatenate([g, np.asarray(upper, float), -np.asarray(lower, float)])
-    centre = _chebyshev_center(G_all, g_all)
-    if centre is None:
-        return None
-    try:
-        hs = HalfspaceIntersection(np.hstack([G_all, -g_all[:, None]]), centre[0])
-        points = np.unique(np.round(hs.intersections, 9), axis=0)
-        hull = ConvexHull(points)
-    except Exception:  # qhull: degenerate polytope
-        return None
-    return points[hull.vertices]
-
-
 def _hull_mesh(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
     """Triangles (i, j, k rows) of the 3D hull of ``points`` and its true edges (not diagonals)."""
     from scipy.spatial import ConvexHull
@@ -263,11 +202,11 @@ def _box_lines(lower: np.ndarray, upper: np.ndarray, digits: int = _DIGITS) -> l
 
 
 # ------------------------------------------------------------------------------------ helpers
-def _round(value: float, digits: int = _DIGITS) -> float | None:
-    value = float(value)
-    if not math.isfinite(value):
+def _round(value: SupportsFloat, digits: int = _DIGITS) -> float | None:
+    number = float(value)
+    if not math.isfinite(number):
         return None
-    return round(value, digits)
+    return round(number, digits)
 
 
 def _rlist(values: np.ndarray, digits: int = _DIGITS) -> list[float | None]:
@@ -390,7 +329,7 @@ def _title(run: RunData, closest: ClosestApproach | None) -> str:
 
 
 # -------------------------------------------------------------------------------------- figure
-def build_figure(run_dir: str | Path, max_frames: int = MAX_FRAMES):  # -> plotly.graph_objects.Figure
+def build_figure(run_dir: str | Path, max_frames: int = MAX_FRAMES) -> go.Figure:
     """The animated plotly figure of a run folder (2D or 3D after the trajectory's dimension).
 
     The figure is validated by plotly, which is slow for a large run (it walks every frame);
@@ -457,17 +396,19 @@ class _Canvas:
         """True for a 3D run (scatter3d, mesh3d and a scene instead of x/y axes)."""
         return self.run.dim == 3
 
-    def axes(self, coords: list) -> dict[str, Any]:
+    def axes(self, coords: list[list[float | None]]) -> dict[str, Any]:
         """``coords`` (one list per axis) as a trace's ``x``, ``y`` (and ``z``) keys."""
         keys = ("x", "y", "z")[: self.run.dim]
-        return dict(zip(keys, coords))
+        return dict(zip(keys, coords, strict=True))
 
     def scatter(self, **kwargs: Any) -> dict[str, Any]:
         """A scatter trace (``scatter3d`` in 3D) with the given keys."""
         return {"type": "scatter3d" if self.is3d else "scatter", **kwargs}
 
 
-def _view_box(run: RunData, reach: np.ndarray, obstacles: list) -> tuple[np.ndarray, np.ndarray]:
+def _view_box(
+    run: RunData, reach: np.ndarray, obstacles: list[tuple[np.ndarray, np.ndarray]]
+) -> tuple[np.ndarray, np.ndarray]:
     """Fixed axis ranges: the workspace (or padded starts and goals), everything that moved and
     every bounded obstacle, padded by 3 % of the largest side.
 
@@ -488,8 +429,8 @@ def _view_box(run: RunData, reach: np.ndarray, obstacles: list) -> tuple[np.ndar
     span = np.maximum(hi - lo, 1e-6)
     far_lo, far_hi = lo - 10 * span - 10, hi + 10 * span + 10
     for G, g in obstacles:  # bounded obstacles extend the view; unbounded ones are clipped
-        verts = polytope_vertices(G, g, far_lo, far_hi)
-        if verts is not None and np.all(verts > far_lo + 1e-6) and np.all(verts < far_hi - 1e-6):
+        verts = polytope_vertices(G, g, (far_lo, far_hi))
+        if len(verts) and np.all(verts > far_lo + 1e-6) and np.all(verts < far_hi - 1e-6):
             lo, hi = np.minimum(lo, verts.min(axis=0)), np.maximum(hi, verts.max(axis=0))
     pad = 0.03 * np.maximum(hi - lo, 1e-6).max()
     return lo - pad, hi + pad
@@ -514,13 +455,15 @@ def _workspace_trace(canvas: _Canvas) -> dict[str, Any] | None:
     )
 
 
-def _obstacle_traces(canvas: _Canvas, obstacles: list, lo: np.ndarray, hi: np.ndarray) -> list[dict[str, Any]]:
+def _obstacle_traces(
+    canvas: _Canvas, obstacles: list[tuple[np.ndarray, np.ndarray]], lo: np.ndarray, hi: np.ndarray
+) -> list[dict[str, Any]]:
     """The static obstacles clipped to the view [lo, hi]: one filled polygon each in 2D, a
     translucent hull mesh plus its edges in 3D (one legend entry for all of them)."""
     traces: list[dict[str, Any]] = []
     for n, (G, g) in enumerate(obstacles):
-        verts = polytope_vertices(G, g, lo, hi)
-        if verts is None:
+        verts = polytope_vertices(G, g, (lo, hi))
+        if len(verts) == 0:
             continue
         common = dict(
             name="obstacles",
@@ -629,7 +572,9 @@ def _agent_static_traces(canvas: _Canvas) -> list[dict[str, Any]]:
             canvas.scatter(
                 **canvas.axes([[_round(goal[a])] for a in range(d)]),
                 mode="markers",
-                marker=dict(symbol=goal_symbol, size=6 if is3d else 14, color=colors[i], line=dict(color="black", width=1)),
+                marker=dict(
+                    symbol=goal_symbol, size=6 if is3d else 14, color=colors[i], line=dict(color="black", width=1)
+                ),
                 name=f"agent {i} goal",
                 hoverinfo="skip",  # the agent marker sits on it at the end: its hover card wins
                 meta={"role": "goal", "agent": i},

@@ -219,7 +219,7 @@ def _candidate_supports(G: np.ndarray, g: np.ndarray) -> list[tuple[int, ...]]:
         pools = _vertex_active_sets(G, g)
     else:
         pools = [tuple(range(m))]
-    supports = {(i,) for i in range(m)}
+    supports: set[tuple[int, ...]] = {(i,) for i in range(m)}
     for pool in pools:
         for size in range(2, min(rank, len(pool)) + 1):
             for subset in itertools.combinations(pool, size):
@@ -244,5 +244,5 @@ def _vertex_active_sets(G: np.ndarray, g: np.ndarray, tol: float = 1e-9) -> list
     slack = vertices @ G.T - g  # (n, m)
     scale = tol * max(1.0, float(np.max(np.abs(g))))
     feasible = np.all(slack <= scale, axis=1)
-    active = {tuple(np.nonzero(np.abs(row) <= scale)[0]) for row in slack[feasible]}
+    active = {tuple(np.nonzero(np.abs(row) <= scale)[0].tolist()) for row in slack[feasible]}
     return sorted(active) if active else [tuple(range(m))]

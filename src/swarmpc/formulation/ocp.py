@@ -36,7 +36,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from swarmpc.config import Scenario
+from swarmpc.config import IpoptOptions, QPOptions, Scenario
 from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder
 from swarmpc.model.agent_model import AgentModel, make_model
 from swarmpc.model.geometry import inflate_polytope
@@ -50,6 +50,8 @@ class OCPSettings:
     ``discretization`` (:func:`swarmpc.model.agent_model.make_model`) into :attr:`model`, so a
     copy with another ``dt`` or ``discretization`` (``dataclasses.replace``) carries the model
     that goes with it. ``Q``, ``Qf`` are (n, n) and ``R`` (m, m) for the model's states and inputs.
+    ``ipopt`` and ``qp`` are how the problems built from these settings are solved (a scenario's
+    ``solver.ipopt`` and ``solver.qp`` sections; the defaults are today's solver options).
     """
 
     dim: int
@@ -70,6 +72,10 @@ class OCPSettings:
     model_name: str = "double_integrator"
     model_params: tuple[tuple[str, Any], ...] = ()
     """Keyword arguments of the model's factory, as (name, value) pairs."""
+    ipopt: IpoptOptions = field(default_factory=IpoptOptions)
+    """IPOPT's options for every NLP built from these settings (:func:`ipopt_options`)."""
+    qp: QPOptions = field(default_factory=QPOptions)
+    """The QP local step's options (read by :class:`swarmpc.solvers.qp_local.QPLocalLadder`)."""
     model: AgentModel = field(init=False, repr=False, compare=False)
     """The agent's dynamics (built from the fields above)."""
 
@@ -106,6 +112,8 @@ class OCPSettings:
             obstacles=tuple(scn.obstacle_halfspaces()),
             model_name=model,
             model_params=tuple(sorted(params.items())),
+            ipopt=scn.solver.ipopt,
+            qp=scn.solver.qp,
         )
 
     def for_body(self, half_size: np.ndarray) -> OCPSettings:
@@ -137,28 +145,39 @@ WARM_START_OPTIONS = {
 }
 """IPOPT options for a solve that starts from the previous solve's primal and dual point."""
 
-IPOPT_OPTIONS = {
-    "expand": True,
-    "print_time": False,
-    "ipopt.print_level": 0,
-    "ipopt.sb": "yes",
-    "ipopt.max_iter": 300,
-    "ipopt.tol": 1e-6,
-    "ipopt.acceptable_tol": 1e-4,
-    "ipopt.mu_strategy": "adaptive",
-}
+def ipopt_options(section: IpoptOptions, local: bool = False) -> dict[str, Any]:
+    """CasADi's options of an IPOPT solve with the settings of a ``solver.ipopt`` section.
 
-LOCAL_IPOPT_OPTIONS = {
-    **IPOPT_OPTIONS,
-    "ipopt.mumps_scaling": 0,
-    "ipopt.mumps_permuting_scaling": 0,
-    "calc_lam_p": False,
-}
-"""IPOPT options of the agents' local ADMM problems: without MUMPS's scaling of the KKT matrix
-and without the parameter multipliers nobody reads. A warm-started local solve takes one or two
-IPOPT iterations, so its time is mostly the linear solver's fixed cost, and these options cut
-that cost without changing the solutions (the centralised problem, large and badly scaled, keeps
-the scaling in :data:`IPOPT_OPTIONS`). Evidence: docs/lab/admm.md, "Local IPOPT options"."""
+    Silent (no banner, no timing, no iteration log). ``local``: the options of the agents' local
+    ADMM problems, which also go without MUMPS's scaling of the KKT matrix (unless
+    ``section.local_scaling``) and without the parameter multipliers nobody reads. A
+    warm-started local solve takes one or two IPOPT iterations, so its time is mostly the linear
+    solver's fixed cost, and these options cut that cost without changing the solutions (the
+    centralised problem, large and badly scaled, keeps the scaling). Evidence: docs/lab/admm.md,
+    "Local IPOPT options".
+    """
+    options: dict[str, Any] = {
+        "expand": True,
+        "print_time": False,
+        "ipopt.print_level": 0,
+        "ipopt.sb": "yes",
+        "ipopt.max_iter": section.max_iter,
+        "ipopt.tol": section.tol,
+        "ipopt.acceptable_tol": section.acceptable_tol,
+        "ipopt.mu_strategy": section.mu_strategy,
+    }
+    if local:
+        if not section.local_scaling:
+            options.update({"ipopt.mumps_scaling": 0, "ipopt.mumps_permuting_scaling": 0})
+        options["calc_lam_p"] = False
+    return options
+
+
+IPOPT_OPTIONS = ipopt_options(IpoptOptions())
+"""IPOPT options of the centralised problem with the default ``solver.ipopt`` section."""
+
+LOCAL_IPOPT_OPTIONS = ipopt_options(IpoptOptions(), local=True)
+"""IPOPT options of the agents' local ADMM problems with the default ``solver.ipopt`` section."""
 
 
 def quadratic_cost(X: ca.SX, U: ca.SX, goal: ca.SX, s: OCPSettings) -> ca.SX:
@@ -278,7 +297,7 @@ def agent_pairs(num_agents: int) -> list[tuple[int, int]]:
 
 
 def build_centralized(
-    s: OCPSettings, num_agents: int, options: dict | None = None, bodies: np.ndarray | None = None,
+    s: OCPSettings, num_agents: int, options: dict[str, Any] | None = None, bodies: np.ndarray | None = None,
 ) -> CompiledNLP:
     """The global OCP: every agent's cost summed, every pair (i < j) coupled by OBCA.
 
@@ -296,11 +315,11 @@ def build_centralized(
     for column, (i, j) in enumerate(pairs):
         offsets = trajectories[i][0][rows, first:] - trajectories[j][0][rows, first:]
         add_pair_avoidance(builder, pair_tag(i, j), offsets, half[:, column], s)
-    return builder.build(f"central_{num_agents}", "ipopt", {**IPOPT_OPTIONS, **(options or {})})
+    return builder.build(f"central_{num_agents}", "ipopt", {**ipopt_options(s.ipopt), **(options or {})})
 
 
 def build_local(
-    s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict | None = None,
+    s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict[str, Any] | None = None,
     plugin: str = "ipopt", warm_start: bool = False, pair_collision: str | None = None, num_planes: int = 0,
 ) -> CompiledNLP:
     """Agent i's ADMM subproblem with ``num_copies`` local copies of other agents.
@@ -359,7 +378,7 @@ def build_local(
     label = f"local_{num_copies}_{num_planes}_{int(dynamic_copies)}_{pair_settings.collision}"
     if plugin != "ipopt":
         return builder.build(label, plugin, options or {})
-    return builder.build(label, "ipopt", {**LOCAL_IPOPT_OPTIONS, **(options or {})},
+    return builder.build(label, "ipopt", {**ipopt_options(s.ipopt, local=True), **(options or {})},
                          warm_options=WARM_START_OPTIONS if warm_start else None)
 
 

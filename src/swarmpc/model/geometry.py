@@ -13,6 +13,8 @@ every pair, or per-agent body half-sizes (M, d) (:func:`as_bodies`).
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import linprog
+from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 
 def box_halfspaces(center: np.ndarray, half_size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -191,3 +193,69 @@ def body_obstacle_penetration(
     inside = (grown - np.asarray(positions, float) @ np.asarray(G, float).T) / norms
     return np.min(inside, axis=-1)
 
+
+def polytope_vertices(
+    G: np.ndarray, g: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
+    """Vertices of the polytope {p : G p <= g}, optionally clipped to an axis-aligned box.
+
+    Parameters
+    ----------
+    G : np.ndarray
+        (k, d) face normals.
+    g : np.ndarray
+        (k,) offsets.
+    bounds : (lower, upper), optional
+        Clip to this box; needed when the set is unbounded.
+
+    Returns
+    -------
+    np.ndarray
+        (n, d) vertices of the convex hull, (0, d) when the set is empty or flat.
+
+    Raises
+    ------
+    ValueError
+        When the set is unbounded and no ``bounds`` are given, or the shapes disagree.
+    """
+    G = np.atleast_2d(np.asarray(G, float))
+    g = np.asarray(g, float).reshape(-1)
+    d = G.shape[1]
+    if G.shape[0] != g.size:
+        raise ValueError(f"G has {G.shape[0]} rows but g has {g.size} entries")
+    if bounds is not None:
+        lower = np.broadcast_to(np.asarray(bounds[0], float), (d,))
+        upper = np.broadcast_to(np.asarray(bounds[1], float), (d,))
+        eye = np.eye(d)
+        G = np.vstack([G, eye, -eye])
+        g = np.concatenate([g, upper, -lower])
+    norms = np.linalg.norm(G, axis=1)
+    if np.any(norms == 0):
+        raise ValueError("G has a zero row")
+    A, b = G / norms[:, None], g / norms
+    # Chebyshev centre: max r  s.t.  a_i^T x + r <= b_i  (rows of A have unit norm).
+    cost = np.zeros(d + 1)
+    cost[-1] = -1.0
+    lp = linprog(
+        cost,
+        A_ub=np.hstack([A, np.ones((len(b), 1))]),
+        b_ub=b,
+        bounds=[(None, None)] * d + [(0, None)],
+        method="highs",
+    )
+    if lp.status == 3:
+        raise ValueError("the polytope is unbounded: pass bounds to clip it")
+    centre = lp.x  # None only when the solve failed (status != 0)
+    if lp.status != 0 or centre is None or centre[-1] <= 1e-9:
+        return np.empty((0, d))
+    if bounds is None:
+        for direction in np.vstack([np.eye(d), -np.eye(d)]):  # bounded iff every extent is finite
+            extent = linprog(-direction, A_ub=A, b_ub=b, bounds=[(None, None)] * d, method="highs")
+            if extent.status == 3:
+                raise ValueError("the polytope is unbounded: pass bounds to clip it")
+    try:
+        points = HalfspaceIntersection(np.hstack([A, -b[:, None]]), centre[:d]).intersections
+        hull = ConvexHull(points)
+    except QhullError:
+        return np.empty((0, d))
+    return hull.points[hull.vertices]

@@ -6,6 +6,11 @@ receding-horizon control carries over: the previous plan (the warm start and the
 failed solve), the initial-guess provider (with its stored RRT paths), the deadlock resolver
 (stall counters, detours in progress) and the solver with its executor (built once). The closed
 loop of :func:`swarmpc.simulation.loop.simulate` is this controller plus a plant.
+
+The solver comes from the registry of :mod:`swarmpc.solvers.registry` (the scenario's
+``solver.method``) and is used only through the :class:`~swarmpc.solvers.base.MPCSolver`
+protocol; the executor of its local solves is the scenario's ``executor`` section unless the
+caller hands one in. What the controller creates, it closes.
 """
 
 from __future__ import annotations
@@ -13,58 +18,57 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from swarmpc.config import Scenario, load_scenario
+from swarmpc.config import ExecutorConfig, Scenario, load_scenario
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.simulation.deadlock import DeadlockPolicy, DeadlockResolver
 from swarmpc.simulation.disturbance import planner_bodies, planner_delta
 from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.simulation.results import StepRecord
-from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, default_coupling
-from swarmpc.solvers.base import PlanStep
-from swarmpc.solvers.centralized import CentralizedSolver
+from swarmpc.solvers.base import MPCSolver, PlanStep
 from swarmpc.solvers.executors import Executor, make_executor
+from swarmpc.solvers.registry import SOLVERS, SolverRegistry
+
+__all__ = ["Controller", "DeadlockFactory", "GuessFactory", "MPCSolver", "close_solver", "deadlock_resolver",
+           "make_solver", "section_executor"]
+
+GuessFactory = Callable[[Scenario, OCPSettings], GuessProvider]
+"""``factory(scenario, settings)`` -> the initial-guess provider of a controller (default:
+:class:`~swarmpc.simulation.guessing.GuessProvider`; a subclass changes how guesses are made)."""
+
+DeadlockFactory = Callable[..., DeadlockResolver]
+"""Called as :class:`~swarmpc.simulation.deadlock.DeadlockResolver` is by
+:func:`deadlock_resolver` (default: that class; a subclass changes the rules' implementation)."""
 
 
-class MPCSolver(Protocol):
-    def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep: ...
-
-
-def make_solver(scn: Scenario, settings: OCPSettings, executor: Executor | None = None) -> MPCSolver:
-    """The scenario's solver (``solver.method``), built once for the run.
+def make_solver(
+    scn: Scenario, settings: OCPSettings, executor: Executor | None = None, registry: SolverRegistry = SOLVERS,
+) -> MPCSolver:
+    """The scenario's solver (``solver.method`` in ``registry``), built once for the run.
 
     The solver keeps each pair apart by the sum of the planner's bodies (the true ones grown by
-    any tightening), and each agent's body out of the obstacles. An ADMM solver given
-    ``executor`` leaves it open when closed (its creator closes it); without one it makes and
-    closes its own.
+    any tightening), and each agent's body out of the obstacles. A solver given ``executor``
+    leaves it open when closed (its creator closes it); without one an ADMM solver makes and
+    closes its own serial one.
     """
-    delta = planner_bodies(scn)
-    if scn.solver.method == "centralized":
-        return CentralizedSolver(settings, scn.num_agents, delta, scn.solver.seed_duals)
-    return ADMMSolver(settings, scn.num_agents, delta, admm_config(scn), executor)
+    return registry.build(scn.solver.method, scn.solver, settings, planner_bodies(scn), executor)
 
 
-def admm_config(scn: Scenario) -> ADMMConfig:
-    """The scenario's ADMM parameters (``solver`` block); the coupling margin follows the collision
-    form (:func:`~swarmpc.solvers.admm.config.default_coupling`) unless the scenario sets one."""
-    margin, closing_time = default_coupling(scn.collision)
-    if scn.solver.coupling_margin is not None:  # the scenario's margin, as given
-        margin, closing_time = scn.solver.coupling_margin, 0.0
-    return ADMMConfig(
-        rho=scn.solver.rho, max_iter=scn.solver.max_iter, tol=scn.solver.tol,
-        adaptive_rho=scn.solver.adaptive_rho, seed_duals=scn.solver.seed_duals,
-        coupling_margin=margin, closing_time=closing_time, reuse_tol=scn.solver.reuse_tol,
-        relaxation=scn.solver.relaxation, plane_margin=scn.solver.plane_margin, deadline=scn.solver.deadline,
-        local=scn.solver.local,
-    )
+def section_executor(section: ExecutorConfig) -> Executor | None:
+    """A new executor as an ``executor`` section describes it; None for ``serial`` (the solver's
+    own). The caller owns it and closes it. ValueError (one line) when it cannot be made (Ray
+    not installed)."""
+    if section.type == "serial":
+        return None
+    if section.type == "ray":
+        return make_executor("ray", address=section.address, actors=section.workers)
+    return make_executor(section.type, workers=section.workers)
 
 
-def deadlock_resolver(
-    scn: Scenario, factory: Callable[..., DeadlockResolver] = DeadlockResolver
-) -> DeadlockResolver:
+def deadlock_resolver(scn: Scenario, factory: DeadlockFactory = DeadlockResolver) -> DeadlockResolver:
     """The scenario's deadlock resolver: the rules of its ``deadlock`` section, agents kept the
     planner's clearance apart, detours kept inside the workspace, jitter seeded by the scenario."""
     return factory(
@@ -100,13 +104,23 @@ class Controller:
     scenario
         The swarm, its limits, costs, obstacles, default goals and solver settings.
     executor
-        Where ADMM's local solves run: None (in this process), an executor's name (``"serial"``,
-        ``"thread"``, ``"process"``, ``"ray"``: the controller creates it and :meth:`close`
-        releases it) or an executor object (owned by the caller, who closes it).
+        Where ADMM's local solves run: None (the scenario's ``executor`` section, serial by
+        default), an executor's name (``"serial"``, ``"thread"``, ``"process"``, ``"ray"``) or an
+        executor object. One made from the section or a name is the controller's, released by
+        :meth:`close`; an object given stays the caller's, who closes it.
     solver
         A solver built elsewhere (owned by the caller; ``executor`` is then not used).
     deadlocks
-        A deadlock resolver built elsewhere (default: :func:`deadlock_resolver`).
+        A deadlock resolver built elsewhere (default: :func:`deadlock_resolver` with
+        ``deadlock_factory``).
+    guess_provider
+        Makes the initial-guess provider from the scenario and the settings (default:
+        :class:`~swarmpc.simulation.guessing.GuessProvider`).
+    deadlock_factory
+        The resolver class (or factory) :func:`deadlock_resolver` builds when ``deadlocks`` is None.
+    solvers
+        Where the scenario's ``solver.method`` is looked up (default:
+        :data:`swarmpc.solvers.registry.SOLVERS`).
 
     After each :meth:`step`, :attr:`plan` holds the predicted plans and :attr:`last_record` the
     solver's record of the step. Use it in a ``with`` block, or call :meth:`close`.
@@ -119,20 +133,28 @@ class Controller:
         *,
         solver: MPCSolver | None = None,
         deadlocks: DeadlockResolver | None = None,
+        guess_provider: GuessFactory = GuessProvider,
+        deadlock_factory: DeadlockFactory = DeadlockResolver,
+        solvers: SolverRegistry = SOLVERS,
     ) -> None:
         scn = scenario.revalidated()  # the lists of a frozen scenario can still be changed in place
         self.scenario = scn
         self.settings = OCPSettings.from_scenario(scn)
         self._owns_solver = solver is None
         self._made_executor: Executor | None = None
-        """The executor made here from its name (closed by :meth:`close`)."""
+        """The executor made here, from the scenario's section or a name (closed by :meth:`close`)."""
         if solver is None:
             made = self._executor(executor)
-            self._made_executor = made if isinstance(executor, str) else None
-            solver = make_solver(scn, self.settings, made)
+            self._made_executor = made if executor is None or isinstance(executor, str) else None
+            try:
+                solver = make_solver(scn, self.settings, made, solvers)
+            except BaseException:
+                if self._made_executor is not None:
+                    self._made_executor.close()
+                raise
         self.solver = solver
-        self.guesser = GuessProvider(scn, self.settings)
-        self.deadlocks = deadlocks or deadlock_resolver(scn)
+        self.guesser = guess_provider(scn, self.settings)
+        self.deadlocks = deadlocks or deadlock_resolver(scn, deadlock_factory)
         self.goals = scn.goal_states()
         """(M, 2d) the goals a :meth:`step` without ``goals`` steers to (the scenario's)."""
         self.steps = 0
@@ -141,7 +163,10 @@ class Controller:
         self._closed = False
 
     def _executor(self, executor: Executor | str | None) -> Executor | None:
-        """The executor object for ``executor``: created here when given by name."""
+        """The executor object for ``executor``: created here from the scenario's ``executor``
+        section (None) or a name."""
+        if executor is None:
+            return section_executor(self.scenario.executor)
         if not isinstance(executor, str):
             return executor
         if self.scenario.solver.method != "admm" and executor != "serial":

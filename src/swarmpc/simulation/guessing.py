@@ -87,7 +87,7 @@ class GuessProvider:
         model = self.settings.model
         self._route = goals.copy()
         out = goals.copy()
-        for i, (state, goal) in enumerate(zip(states, goals)):
+        for i, (state, goal) in enumerate(zip(states, goals, strict=True)):
             here, there = model.position(state), model.position(goal)
             if self._rrt_of[i].line_of_sight(here, there):
                 continue
@@ -99,10 +99,14 @@ class GuessProvider:
     def guesses(self, states: np.ndarray, goals: np.ndarray, previous: PlanStep | None) -> np.ndarray:
         """(M, N+1, n) guesses for measured ``states`` (M, n)."""
         out = []
-        for i, (state, goal) in enumerate(zip(states, goals)):
-            shiftable = previous is not None and np.allclose(previous.states[i, 1], state, atol=SHIFT_TOLERANCE)
-            if self.strategy in ("shifted", "auto") and shiftable and not previous.fallback[i]:  # type: ignore[union-attr]
-                plan = previous.states[i]  # type: ignore[union-attr]
+        for i, (state, goal) in enumerate(zip(states, goals, strict=True)):
+            if (
+                self.strategy in ("shifted", "auto")
+                and previous is not None
+                and np.allclose(previous.states[i, 1], state, atol=SHIFT_TOLERANCE)
+                and not previous.fallback[i]
+            ):
+                plan = previous.states[i]
                 out.append(np.vstack([plan[1:], plan[-1:]]))
             elif self.strategy == "straight":
                 s = self.settings

@@ -16,15 +16,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from swarmpc.config import Scenario
-from swarmpc.simulation.controller import (
-    Controller,
-    MPCSolver,
-    deadlock_resolver,
-    make_solver,
-)
+from swarmpc.simulation.controller import Controller, DeadlockFactory, GuessFactory, make_solver
 from swarmpc.simulation.deadlock import DeadlockResolver
+from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.simulation.plant import Plant, make_plant
 from swarmpc.simulation.results import RunResult, StepRecord
+from swarmpc.solvers.base import MPCSolver
 from swarmpc.solvers.executors import Executor
 
 __all__ = ["MPCSolver", "ProgressCallback", "StopFlag", "goal_reached", "make_solver", "simulate"]
@@ -33,10 +30,11 @@ ProgressCallback = Callable[[int, int, np.ndarray], None]
 
 
 def goal_reached(states: np.ndarray, goals: np.ndarray, scn: Scenario) -> np.ndarray:
-    """Per agent: within the goal tolerance in position and nearly at rest."""
-    d = scn.dim
-    near = np.linalg.norm(states[:, :d] - goals[:, :d], axis=1) <= scn.stop.goal_tolerance
-    slow = np.linalg.norm(states[:, d:] - goals[:, d:], axis=1) <= scn.stop.speed_tolerance
+    """Per agent: within the goal tolerance in position and nearly at rest (the scenario's agent
+    model reads both from the states)."""
+    model = scn.agent_model()
+    near = np.linalg.norm(model.position(states) - model.position(goals), axis=1) <= scn.stop.goal_tolerance
+    slow = np.linalg.norm(model.velocity(states) - model.velocity(goals), axis=1) <= scn.stop.speed_tolerance
     return near & slow
 
 
@@ -63,11 +61,11 @@ class _Recording:
         self.disturbances.append(disturbance)
 
     def arrays(self, scn: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(states (T+1, M, 2d), inputs (T, M, d), disturbances (T, M, 2d))."""
+        """(states (T+1, M, n), inputs (T, M, m), disturbances (T, M, n)) of the agent model."""
         steps = len(self.inputs)
         return (
             np.array(self.states),
-            np.array(self.inputs).reshape(steps, scn.num_agents, scn.dim),
+            np.array(self.inputs).reshape(steps, scn.num_agents, scn.agent_model().input_dim),
             np.array(self.disturbances).reshape(steps, scn.num_agents, scn.state_dim),
         )
 
@@ -79,20 +77,27 @@ def simulate(
     stop_flag: StopFlag | None = None,
     executor: Executor | None = None,
     plant: Plant | None = None,
+    *,
+    guess_provider: GuessFactory = GuessProvider,
+    deadlock_factory: DeadlockFactory = DeadlockResolver,
 ) -> RunResult:
     """Run the scenario in closed loop until every agent is at its goal or ``max_steps``.
 
     The plant is the scenario's (``plant.type``) unless one is given. With a ``disturbance`` block
     the controller sees the measured state (true + measurement noise) and the true state receives
     process noise after each step; the stop test and every metric use the true state. A solver or
-    executor handed in stays open: whoever created it closes it.
+    executor handed in stays open: whoever created it closes it. Without either, the
+    :class:`~swarmpc.simulation.controller.Controller` builds the scenario's solver and the
+    executor of its ``executor`` section, and closes them when the run ends.
+    ``guess_provider`` and ``deadlock_factory`` make the controller's initial-guess provider and
+    deadlock resolver (see :class:`~swarmpc.simulation.controller.Controller`).
     """
     scn = scn.revalidated()  # the lists of a frozen scenario can still be changed in place
     started = time.perf_counter()
     plant = plant if plant is not None else make_plant(scn)
     goals = scn.goal_states()
-    resolver = deadlock_resolver(scn, DeadlockResolver)  # this module's name: a test may swap the class
-    with Controller(scn, executor, solver=solver, deadlocks=resolver) as controller:
+    with Controller(scn, executor, solver=solver, guess_provider=guess_provider,
+                    deadlock_factory=deadlock_factory) as controller:
         recording = _Recording(states=[plant.reset()])
         interrupted = False
         for step in range(scn.stop.max_steps):

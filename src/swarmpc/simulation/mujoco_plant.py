@@ -36,9 +36,9 @@ from typing import Any
 import numpy as np
 
 from swarmpc.config import PlantConfig, Scenario
+from swarmpc.model.geometry import polytope_vertices
 from swarmpc.simulation.disturbance import DisturbanceModel
 from swarmpc.simulation.plant import checked_inputs
-from swarmpc.viewer import polytope_vertices
 
 PhysicsHook = Callable[[Any, Any], None]
 """Called as ``hook(model, data)`` after every physics step (MuJoCo's ``MjModel``, ``MjData``)."""
@@ -51,7 +51,7 @@ _BOUNDS_PAD = 1.0  # m: added to how far beyond the workspace an unbounded polyt
 def load_mujoco() -> Any:
     """The ``mujoco`` module; ImportError with the install command when it is missing."""
     try:
-        import mujoco  # type: ignore[import-untyped]
+        import mujoco
     except ImportError:
         raise ImportError("plant.type: mujoco needs the mujoco package (pip install mujoco)") from None
     return mujoco
@@ -60,6 +60,14 @@ def load_mujoco() -> Any:
 def physics_substeps(dt: float, physics_dt: float) -> int:
     """Equal physics steps per sampling period, each no longer than ``physics_dt``."""
     return max(1, math.ceil(dt / physics_dt - 1e-9))
+
+
+def _physics_value(value: float | None, name: str) -> float:
+    """A physics field of a ``mujoco`` plant section: its validator fills every one of them, so
+    None means a section of another plant type was passed."""
+    if value is None:
+        raise ValueError(f"plant.{name}: unset (a plant.type: mujoco section fills it from its defaults)")
+    return float(value)
 
 
 def _numbers(values: Any) -> str:
@@ -78,7 +86,9 @@ def _add_agent(world: ET.Element, actuators: ET.Element, index: int, position: n
     dim = position.size
     name = f"agent{index}"
     body = ET.SubElement(world, "body", name=name, pos=_numbers(_lifted(position, 0.0)))
-    mass, drag, lag = float(config.mass), float(config.drag), float(config.lag_s)  # type: ignore[arg-type]
+    mass = _physics_value(config.mass, "mass")
+    drag = _physics_value(config.drag, "drag")
+    lag = _physics_value(config.lag_s, "lag_s")
     actuator = {"gainprm": repr(mass), "ctrllimited": "false"}
     if lag > 0:
         actuator.update(dyntype="filterexact", dynprm=repr(lag))
@@ -107,8 +117,8 @@ def _add_obstacles(scn: Scenario, world: ET.Element, asset: ET.Element) -> None:
                           contype="1", conaffinity="1")
             continue
         G, g = obstacle.halfspaces(scn.dim)
-        vertices = polytope_vertices(G, g, lower - pad, upper + pad)
-        if vertices is None:
+        vertices = polytope_vertices(G, g, (lower - pad, upper + pad))
+        if len(vertices) == 0:
             continue
         if scn.dim == 2:
             vertices = np.vstack([np.c_[vertices, np.full(len(vertices), z)]
@@ -125,7 +135,7 @@ def build_mjcf(scn: Scenario, config: PlantConfig, substeps: int) -> str:
     world = ET.SubElement(root, "worldbody")
     actuators = ET.SubElement(root, "actuator")
     model = scn.agent_model()
-    for i, (start, half) in enumerate(zip(model.position(scn.start_states(model)), scn.bodies)):
+    for i, (start, half) in enumerate(zip(model.position(scn.start_states(model)), scn.bodies, strict=True)):
         _add_agent(world, actuators, i, start, half, config)
     _add_obstacles(scn, world, asset)
     if not len(asset):
@@ -158,13 +168,13 @@ class ContactCounter:
         a, b = self.agent_of_geom[geom1], self.agent_of_geom[geom2]
         low, high = np.minimum(a, b), np.maximum(a, b)
         both = low >= 0
-        pairs = set(zip(low[both].tolist(), high[both].tolist()))
+        pairs = set(zip(low[both].tolist(), high[both].tolist(), strict=True))
         if pairs and self.first_agent_contact is None:
             self.first_agent_contact = (physics_step, *min(pairs))
         self.agent_contacts += len(pairs)
         one = (low < 0) & (high >= 0)
         other = np.where(a >= 0, geom2, geom1)
-        self.obstacle_contacts += len(set(zip(high[one].tolist(), other[one].tolist())))
+        self.obstacle_contacts += len(set(zip(high[one].tolist(), other[one].tolist(), strict=True)))
 
 
 class MuJoCoPlant:
@@ -182,7 +192,7 @@ class MuJoCoPlant:
         self.mujoco = load_mujoco()
         self.scenario = scn
         self.config = scn.plant if scn.plant.type == "mujoco" else PlantConfig(type="mujoco")
-        self.substeps = physics_substeps(scn.dt, float(self.config.physics_dt))  # type: ignore[arg-type]
+        self.substeps = physics_substeps(scn.dt, _physics_value(self.config.physics_dt, "physics_dt"))
         self.mjcf = build_mjcf(scn, self.config, self.substeps)
         self.model = self.mujoco.MjModel.from_xml_string(self.mjcf)
         self.data = self.mujoco.MjData(self.model)

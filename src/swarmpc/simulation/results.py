@@ -286,7 +286,8 @@ def _write_contents(result: RunResult, folder: Path) -> None:
     if result.disturbances is not None:
         # states[k+1] = f(states[k], inputs[k]) + disturbances[k]
         arrays["disturbances"] = result.disturbances
-    np.savez_compressed(folder / "trajectory.npz", **arrays)
+    # The stubs cannot tell that no array is named like the keyword allow_pickle (numpy >= 2.1).
+    np.savez_compressed(folder / "trajectory.npz", **arrays)  # type: ignore[arg-type]
     records = result.records
     m = scn.num_agents
     np.savez_compressed(

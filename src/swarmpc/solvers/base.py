@@ -1,8 +1,10 @@
-"""What every MPC solver returns, and the safe fallback plans used when a solve fails."""
+"""What every MPC solver is (:class:`MPCSolver`) and returns (:class:`PlanStep`), and the safe
+fallback plans used when a solve fails."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -43,6 +45,17 @@ class PlanStep:
     centralised: the whole solve). None: not measured, read as ``wall_time``."""
     deadline_stop: bool = False
     """ADMM stopped iterating because another iteration would have overrun ``solver.deadline``."""
+
+
+class MPCSolver(Protocol):
+    """What the closed loop asks of a solver: one MPC step of the whole swarm.
+
+    ``states`` (M, n) are the measured states, ``goals`` (M, n) this step's goals and ``guess``
+    (M, N+1, n) the initial-guess trajectories. A solver that holds resources (an executor's
+    workers) may also have a ``close()``, which whoever built the solver calls.
+    """
+
+    def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray) -> PlanStep: ...
 
 
 def braking_plan(state: np.ndarray, settings: OCPSettings) -> tuple[np.ndarray, np.ndarray]:

@@ -45,7 +45,7 @@ class CentralizedSolver:
         point: dict[str, np.ndarray] = {}
         for i in range(self.num_agents):
             point.update(agent_guess_blocks(str(i), guess[i], self.agent_settings[i], seed and self.seed_duals))
-        for (i, j), delta in zip(self.pairs, self.pair_deltas):
+        for (i, j), delta in zip(self.pairs, self.pair_deltas, strict=True):
             offsets = s.model.position(guess[i, first:]) - s.model.position(guess[j, first:])
             point.update(pair_guess_blocks(pair_tag(i, j), offsets, delta, s, seed and self.seed_duals))
         return point

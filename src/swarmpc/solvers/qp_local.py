@@ -71,6 +71,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import HalfspaceIntersection
 
+from swarmpc.config import QPOptions
 from swarmpc.formulation.certificates import PolytopeCertifier, box_certificates
 from swarmpc.formulation.nlp import NLPSolution
 from swarmpc.formulation.ocp import OCPSettings
@@ -91,7 +92,12 @@ __all__ = [
 
 @dataclass(frozen=True)
 class QPLocalOptions:
-    """Tolerances of the QP local step (OSQP's, the margin, the certificate loop's)."""
+    """Tolerances of the QP local step (OSQP's, the margin, the certificate loop's).
+
+    The fields are the keys of a scenario's ``solver.qp`` section, with the same names and
+    defaults (:class:`swarmpc.config.QPOptions` describes and bounds them); :meth:`from_config`
+    builds the options of that section. Built directly, the dataclass takes the fields unchecked.
+    """
 
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6
@@ -117,6 +123,11 @@ class QPLocalOptions:
     """[m] a row within this of its bound counts as near it for ``certificate_tol``."""
     speed_facets: int | None = None
     """Facets of the inner speed polytope; None: 16 in 2D, the 26 cube directions in 3D."""
+
+    @classmethod
+    def from_config(cls, config: QPOptions) -> QPLocalOptions:
+        """The options of a scenario's ``solver.qp`` section, field by field (the names are shared)."""
+        return cls(**config.model_dump())
 
 
 @dataclass(frozen=True)
@@ -307,8 +318,8 @@ class Certifier:
         half = copy_deltas(delta, n, d)
         normal = pair_lam[:, :d] - pair_lam[:, d:]
         constant = np.einsum("dn,ndk->nk", half, pair_lam[:, :d] + pair_lam[:, d:])
-        o_normal = np.array([G.T @ lam for G, lam in zip(self.G, obstacle_lam)]).reshape(-1, d, K)
-        o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam)]).reshape(-1, K)
+        o_normal = np.array([G.T @ lam for G, lam in zip(self.G, obstacle_lam, strict=True)]).reshape(-1, d, K)
+        o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam, strict=True)]).reshape(-1, K)
         return Linearisation(
             pair_lam=pair_lam, pair_normal=normal, pair_constant=constant,
             pair_value=np.einsum("ndk,ndk->nk", normal, own[None] - copies) - constant,
@@ -343,6 +354,7 @@ class LocalQPProblem:
     def __init__(self, s: OCPSettings, shape: LocalShape, options: QPLocalOptions) -> None:
         self.settings, self.shape, self.options = s, shape, options
         self.layout = VariableLayout(s, shape)
+        self.speed_normals: np.ndarray | None
         self.speed_normals, ratio = speed_polytope(s.dim, options.speed_facets) if s.speed else (None, 1.0)
         self.speed_bound = ratio * s.speed - options.margin if s.speed else np.inf
         self._copy_keys = ([f"Y{c}" for c in range(shape.copies)], [f"Z{c}" for c in range(shape.copies)])
@@ -401,7 +413,9 @@ class LocalQPProblem:
         """Rows in blocks (named in ``rows``): initial state, dynamics, limits, collision rows,
         slack signs; fixed values set here, changing ones (``_*_slots``) left for each call."""
         self.rows: dict[str, np.ndarray] = {}
-        self._row_counter, self._lower, self._upper = _Counter(), [], []
+        self._lower: list[np.ndarray] = []
+        self._upper: list[np.ndarray] = []
+        self._row_counter = _Counter()
         A = TripletMatrix(self.layout.size)
         self._dynamics_rows(A)
         self._limit_rows(A)
@@ -426,9 +440,9 @@ class LocalQPProblem:
         A.add(self._block("init", n, lower=0.0, upper=0.0), lay.X[:, 0], 1.0)
         dyn = self._block("dyn", s.horizon, n, lower=0.0, upper=0.0).T  # (n, N)
         A.add(dyn, lay.X[:, 1:], 1.0)
-        for i, j in zip(*np.nonzero(Ad)):
+        for i, j in zip(*np.nonzero(Ad), strict=True):
             A.add(dyn[i], lay.X[j, :-1], -Ad[i, j])
-        for i, j in zip(*np.nonzero(Bd)):
+        for i, j in zip(*np.nonzero(Bd), strict=True):
             A.add(dyn[i], lay.U[j], -Bd[i, j])
 
     def _limit_rows(self, A: TripletMatrix) -> None:
@@ -442,7 +456,7 @@ class LocalQPProblem:
             margin = self.options.margin
             rows = self._block("workspace", K, d, lower=s.lower + margin, upper=s.upper - margin)
             A.add(rows.T, lay.own, 1.0)
-        if s.speed is not None:
+        if s.speed is not None and self.speed_normals is not None:
             # a_f' v(x_k) over the state entries the velocity depends on (v linear in the state)
             velocity = s.model.velocity(np.eye(s.model.state_dim))  # (s, d): row j is v(e_j)
             support = np.flatnonzero(np.any(velocity != 0, axis=1))
@@ -515,9 +529,10 @@ class QPAnswer:
 class QPBackend(Protocol):
     """What the local step needs of a QP solver: set up once, then update data and warm-start."""
 
-    def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, l: np.ndarray, u: np.ndarray) -> None: ...
+    def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, lower: np.ndarray,
+              upper: np.ndarray) -> None: ...
 
-    def update(self, q: np.ndarray, l: np.ndarray, u: np.ndarray, P_data: np.ndarray | None,
+    def update(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, P_data: np.ndarray | None,
                A_data: np.ndarray | None) -> None: ...
 
     def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer: ...
@@ -531,19 +546,20 @@ class OSQPBackend:
         self.options = options
         self._solver: Any = None
 
-    def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, l: np.ndarray, u: np.ndarray) -> None:
+    def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, lower: np.ndarray,
+              upper: np.ndarray) -> None:
         import osqp  # imported here: the IPOPT path must not need it
 
         o = self.options
         self._solver = osqp.OSQP()
-        self._solver.setup(P, q, A, l, u, verbose=False, eps_abs=o.eps_abs, eps_rel=o.eps_rel,
+        self._solver.setup(P, q, A, lower, upper, verbose=False, eps_abs=o.eps_abs, eps_rel=o.eps_rel,
                            max_iter=o.max_iter, polishing=o.polish, warm_starting=True,
                            polish_refine_iter=3, check_termination=o.check_termination)
 
-    def update(self, q: np.ndarray, l: np.ndarray, u: np.ndarray, P_data: np.ndarray | None,
+    def update(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, P_data: np.ndarray | None,
                A_data: np.ndarray | None) -> None:
         matrices = {k: v for k, v in (("Px", P_data), ("Ax", A_data)) if v is not None}
-        self._solver.update(q=q, l=l, u=u, **matrices)
+        self._solver.update(q=q, l=lower, u=upper, **matrices)
 
     def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer:
         self._solver.warm_start(x=x, y=y if y is not None else np.zeros(self._solver.m))
@@ -744,7 +760,7 @@ class SequentialLocalQP:
         began = time.perf_counter()
         delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
         x, lin = self._start(guess, delta, pinned)
-        tally = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
+        tally: list[Any] = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
         answer, x, lin, converged = self._loop(params, x, lin, y, pinned, slack_caps, delta, tally)
         for plan in self._fallback_plans(params) if not answer.solved and tally[0] == 1 else []:
             start = x.copy()
@@ -761,7 +777,7 @@ class SequentialLocalQP:
 
     def _loop(
         self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray | None,
-        pinned: np.ndarray | None, slack_caps: dict[int, float] | None, delta: np.ndarray, tally: list,
+        pinned: np.ndarray | None, slack_caps: dict[int, float] | None, delta: np.ndarray, tally: list[Any],
     ) -> tuple[QPAnswer, np.ndarray, Linearisation, bool]:
         """The certificate loop from (x, lin): (last answer, plan, its best certificates, converged)."""
         converged = False
@@ -895,7 +911,8 @@ class QPLocalLadder:
     pair slacks (``A{c}``, an upper bound; the hard form has none); other blocks are refused.
     ``duals``: (unused, QP multipliers) of the previous solve of the same shape. A lock guards
     the built solvers (stateful OSQP objects) under threads; pickling keeps the recipe only and
-    a worker process builds its own.
+    a worker process builds its own. ``options`` None: those of ``settings.qp`` (a scenario's
+    ``solver.qp`` section, :meth:`QPLocalOptions.from_config`).
     """
 
     def __init__(self, settings: OCPSettings, pair_collision: str | None = None,
@@ -903,7 +920,7 @@ class QPLocalLadder:
                  backend: Callable[[QPLocalOptions], QPBackend] = OSQPBackend) -> None:
         self.settings = settings
         self.pair_collision = pair_collision or settings.collision
-        self.options = options or QPLocalOptions()
+        self.options = options or QPLocalOptions.from_config(settings.qp)
         self.backend = backend
         self._built: dict[LocalShape, SequentialLocalQP] = {}
         self._lock = threading.Lock()

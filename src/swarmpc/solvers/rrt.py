@@ -87,6 +87,8 @@ class _Validity:
         self.step = min(0.5 * inflate, 0.01 * self.extent) if inflate > 0 else 0.01 * self.extent
 
         faces = []
+        self._G: np.ndarray | None = None  # (obstacles, faces, d) stacked face normals; None: no obstacle
+        self._h: np.ndarray | None = None  # (obstacles, faces) inflated offsets, padded with +inf
         for G, g in obstacles:
             G = np.atleast_2d(np.asarray(G, dtype=float))
             g = np.asarray(g, dtype=float).reshape(-1)
@@ -100,9 +102,6 @@ class _Validity:
             for k, (G, h) in enumerate(faces):
                 self._G[k, : G.shape[0]] = G
                 self._h[k, : G.shape[0]] = h
-        else:
-            self._G = None
-            self._h = None
 
     def points_valid(self, points: np.ndarray) -> np.ndarray:
         """Validity of each row of ``points`` (m, d)."""

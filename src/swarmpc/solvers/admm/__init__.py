@@ -62,7 +62,6 @@ from swarmpc.solvers.admm.messages import (
     LocalResult,
     TimedResult,
 )
-from swarmpc.solvers.admm.repair import REPAIR_ROUNDS
 from swarmpc.solvers.admm.safety import SafetyChecks
 from swarmpc.solvers.admm.solver import ADMMSolver
 
@@ -71,7 +70,6 @@ __all__ = [
     "KEPT_PLAN",
     "PLANE_EXTRA",
     "PLANE_GOAL_RADIUS",
-    "REPAIR_ROUNDS",
     "ADMMConfig",
     "ADMMSolver",
     "AgentLadder",

@@ -31,18 +31,27 @@ Targets = tuple[float, float, np.ndarray]
 
 
 def trajectory_through(state: np.ndarray, z: np.ndarray, s: OCPSettings) -> np.ndarray:
-    """A state trajectory (N+1, 2d) from ``state`` whose constrained positions are ``z`` (d, K):
-    the guess for a dynamically constrained copy."""
-    d, first = s.dim, s.first_constrained_step
-    positions = np.empty((s.horizon + 1, d))
-    positions[0] = state[:d]
-    if first == 2:
-        positions[1] = state[:d] + s.dt * state[d:]
+    """A state trajectory (N+1, n) of the settings' model from ``state`` whose constrained
+    positions are ``z`` (d, K): the guess for a dynamically constrained copy.
+
+    The positions before the first constrained step follow from ``state`` alone (the model coasts
+    there: they do not depend on the inputs); the velocities are the measured one, then the
+    differences of the positions, the last repeated (the model's state carries them where it has
+    a velocity)."""
+    model, first = s.model, s.first_constrained_step
+    state = np.asarray(state, float)
+    positions = np.empty((s.horizon + 1, s.dim))
+    positions[0] = model.position(state)
+    coasting = state
+    for k in range(1, first):
+        coasting = model.step(coasting, np.zeros(model.input_dim))
+        positions[k] = model.position(coasting)
     positions[first:] = z.T
-    velocities = np.vstack([state[d:], np.diff(positions, axis=0)[1:] / s.dt, np.zeros((1, d))])[: s.horizon + 1]
+    velocities = np.empty_like(positions)
+    velocities[0] = model.velocity(state)
     velocities[1:-1] = np.diff(positions, axis=0)[1:] / s.dt
     velocities[-1] = velocities[-2]
-    return np.hstack([positions, velocities])
+    return model.state_at(positions, velocities)
 
 
 def initial_point(
@@ -51,7 +60,7 @@ def initial_point(
     """Primal start of a local problem from the request's guess (and its copies from z), with the
     OBCA certificates seeded from the geometry when ``seed``."""
     point = agent_guess_blocks("", request.guess, s, seed)
-    own = request.guess[s.first_constrained_step:, : s.dim]
+    own = s.model.position(request.guess[s.first_constrained_step:])
     for slot, z in enumerate(request.z_neighbours):
         if dynamic_copies:
             trajectory = trajectory_through(request.neighbour_states[slot], z, s)
@@ -352,7 +361,7 @@ class LocalAgent:
             self._solution = None
         self._plan = (states, inputs)
         return LocalResult(
-            agent=self.agent, own=states[s.first_constrained_step:, : s.dim].T.copy(), copies=copies,
+            agent=self.agent, own=s.model.position(states[s.first_constrained_step:]).T.copy(), copies=copies,
             states=states, inputs=inputs, success=solution.success and not kept, fallback=fallback,
             solve_time=solution.solve_time, max_slack=float(max(slack)) if slack else 0.0, cost=solution.cost,
             local_fallbacks=self._fallbacks,
@@ -360,7 +369,8 @@ class LocalAgent:
 
     def _copy_positions(self, solution: NLPSolution, slot: int) -> np.ndarray:
         if self.dynamic_copies:
-            return solution.x[f"Xc{slot}"][: self.settings.dim, self.settings.first_constrained_step :]
+            s = self.settings
+            return solution.x[f"Xc{slot}"][s.model.position_rows, s.first_constrained_step :]
         return solution.x[f"C{slot}"]
 
     def _fallback(
@@ -417,7 +427,7 @@ class LocalAgent:
         point = agent_guess_blocks("", fallback, s)
         assert request.neighbour_plans is not None
         for slot, other in enumerate(request.neighbour_plans[0]):
-            offsets = fallback[first:, : s.dim] - other[first:, : s.dim]
+            offsets = s.model.position(fallback[first:]) - s.model.position(other[first:])
             point.update(pair_guess_blocks(str(slot), offsets, request.pair_deltas[slot], soft))
         solution = self._ladder_solve(self.rescue, params, point, pinned, copies=len(request.neighbours),
                                       planes=request.num_planes)
@@ -435,9 +445,9 @@ def separation_shortfall(states: np.ndarray, request: LocalRequest, s: OCPSettin
     Delta_ij box, so depth counts), summed over neighbours and constrained steps; 0 for a plan
     clear of them all."""
     assert request.neighbour_plans is not None
-    d, first = s.dim, s.first_constrained_step
-    others = request.neighbour_plans[0][:, first:, :d]
-    signed = box_signed_distance(states[None, first:, :d] - others, request.pair_deltas[:, None, :])
+    model, first = s.model, s.first_constrained_step
+    others = model.position(request.neighbour_plans[0][:, first:])
+    signed = box_signed_distance(model.position(states[first:])[None] - others, request.pair_deltas[:, None, :])
     return float(np.maximum(s.d_min - signed, 0.0).sum())
 
 

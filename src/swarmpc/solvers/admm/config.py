@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
+
+if TYPE_CHECKING:
+    from swarmpc.config import SolverConfig
 
 DEFAULT_COUPLING = {"hard": (0.2, 0.1), "soft": (0.5, 0.0)}
 """(coupling margin [m], closing time [s]) by collision form when the scenario leaves the margin
@@ -21,7 +24,8 @@ def default_coupling(collision: str) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class ADMMConfig:
-    """ADMM parameters (see the scenario's ``solver`` block); checked when made (ValueError)."""
+    """ADMM parameters (a scenario's ``solver`` section: :meth:`from_options`); checked when made
+    (ValueError)."""
 
     rho: float = 10.0
     max_iter: int = 100
@@ -30,6 +34,9 @@ class ADMMConfig:
     dynamic_copies: bool = False
     owner_weight: float = 5.0
     repair: bool = True
+    repair_rounds: int = 3
+    """Repair passes at most per step: after a pass, candidate pairs whose repaired plans conflict
+    are coupled and the pass runs again."""
     coupling_margin: float | None = 0.5
     closing_time: float = 0.0
     """Seconds of closing speed added to the coupling margin per pair: pairs whose guesses approach
@@ -87,11 +94,36 @@ class ADMMConfig:
         if problem is not None:
             raise ValueError(f"ADMMConfig.{problem}")
 
+    @classmethod
+    def from_options(cls, options: SolverConfig, collision: str) -> ADMMConfig:
+        """The ADMM parameters of a scenario's ``solver`` section (its flat keys and its ``admm``
+        sub-section) for ``collision`` ("hard" / "soft") constraints.
+
+        The coupling margin and closing time follow the collision form (:func:`default_coupling`)
+        unless the section sets them: a ``coupling_margin`` given is used as it is, with no
+        closing-speed term unless ``admm.closing_time`` sets one.
+        """
+        margin, closing_time = default_coupling(collision)
+        if options.coupling_margin is not None:  # the scenario's margin, as given
+            margin, closing_time = options.coupling_margin, 0.0
+        admm = options.admm
+        return cls(
+            rho=options.rho, max_iter=options.max_iter, tol=options.tol, adaptive_rho=options.adaptive_rho,
+            seed_duals=options.seed_duals, coupling_margin=margin, reuse_tol=options.reuse_tol,
+            relaxation=options.relaxation, plane_margin=options.plane_margin, deadline=options.deadline,
+            local=options.local,
+            closing_time=closing_time if admm.closing_time is None else admm.closing_time,
+            dynamic_copies=admm.dynamic_copies, owner_weight=admm.owner_weight, repair=admm.repair,
+            repair_rounds=admm.repair_rounds, stall_window=admm.stall_window, stall_rho_factor=admm.stall_rho_factor,
+            rho_bounds=(admm.rho_min, admm.rho_max), carry_multipliers=admm.carry_multipliers,
+            warm_start=admm.warm_start,
+        )
+
 
 def _first_problem(cfg: ADMMConfig) -> str | None:
     """The first field of ``cfg`` outside its range, as ``name: what is wrong``; None when valid."""
     positive: dict[str, float] = {"rho": cfg.rho, "max_iter": cfg.max_iter, "tol": cfg.tol,
-                                  "owner_weight": cfg.owner_weight}
+                                  "owner_weight": cfg.owner_weight, "repair_rounds": cfg.repair_rounds}
     for name, value in positive.items():
         if not value > 0:
             return f"{name}: must be > 0, got {value!r}"

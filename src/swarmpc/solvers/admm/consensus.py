@@ -29,12 +29,12 @@ class Carryover:
     rho: float
 
 
-def starting_consensus(guess: np.ndarray, first: int, dim: int, previous: Carryover | None) -> np.ndarray:
+def starting_consensus(positions: np.ndarray, previous: Carryover | None) -> np.ndarray:
     """z (M, d, K) at the start of a step: the previous step's applied plans shifted by one step
-    (after a repair pass the last average is nobody's plan), or the guess's positions at the
-    constrained steps from ``first`` on."""
+    (after a repair pass the last average is nobody's plan), or the guess's ``positions``
+    (M, K, d) at the constrained steps."""
     if previous is None:
-        return np.transpose(guess[:, first:, :dim], (0, 2, 1)).copy()
+        return np.transpose(positions, (0, 2, 1)).copy()
     return np.concatenate([previous.z[:, :, 1:], previous.z[:, :, -1:]], axis=2)
 
 

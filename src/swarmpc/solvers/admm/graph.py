@@ -18,7 +18,6 @@ from types import MappingProxyType
 import numpy as np
 
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.model.dynamics import discrete_matrices
 from swarmpc.model.geometry import as_bodies, largest_pair_delta
 from swarmpc.solvers.admm.config import ADMMConfig
 
@@ -43,10 +42,10 @@ def reach_radius(states: np.ndarray, settings: OCPSettings) -> np.ndarray:
 
     Parameters
     ----------
-    states : ndarray, shape (M, 2d)
-        Current (measured) states [p, v], the states the plans start from.
+    states : ndarray, shape (M, n)
+        Current (measured) states of the settings' agent model, the states the plans start from.
     settings : OCPSettings
-        Horizon, time step and the limits the plans obey.
+        The agent model, the horizon and the limits the plans obey.
 
     Returns
     -------
@@ -56,29 +55,22 @@ def reach_radius(states: np.ndarray, settings: OCPSettings) -> np.ndarray:
 
     Notes
     -----
-    Per axis, with an acceleration limit a: ``|v_axis| T + a T^2 / 2``, the continuous-time bound,
-    which both discretisations stay within (Euler moves dt^2 a k(k-1)/2 in k steps, the zero-order
-    hold exactly a (k dt)^2 / 2); every plan the solver emits obeys it: local solutions, the
-    braking plan and the replayed previous plan of a fallback. With a speed limit s (a bound on the
-    norm, so on every axis, for every planned velocity after the measured one):
-    ``T max(s, |v_axis|)``, which is ``s T`` whenever the measured velocity is within the limit
-    and also covers a measured velocity above it (the first step moves with it) and the braking
-    plan (whose speed never grows). With both limits, the smaller bound; with neither, ``inf``.
-    Not covered by the speed bound: a fallback that replays the previous plan from a state off
-    that plan (its velocities shift by the offset); the conflict check therefore also checks
-    every pair of an agent whose plan moved farther than this bound
+    The model's :meth:`~swarmpc.model.agent_model.AgentModel.reach_bound` over the horizon. For
+    the double integrator, per axis, with an acceleration limit a: ``|v_axis| T + a T^2 / 2``, the
+    continuous-time bound, which both discretisations stay within (Euler moves dt^2 a k(k-1)/2 in
+    k steps, the zero-order hold exactly a (k dt)^2 / 2); every plan the solver emits obeys it:
+    local solutions, the braking plan and the replayed previous plan of a fallback. With a speed
+    limit s (a bound on the norm, so on every axis, for every planned velocity after the measured
+    one): ``T max(s, |v_axis|)``, which is ``s T`` whenever the measured velocity is within the
+    limit and also covers a measured velocity above it (the first step moves with it) and the
+    braking plan (whose speed never grows). With both limits, the smaller bound; with neither,
+    ``inf``. Not covered by the speed bound: a fallback that replays the previous plan from a
+    state off that plan (its velocities shift by the offset); the conflict check therefore also
+    checks every pair of an agent whose plan moved farther than this bound
     (:meth:`~swarmpc.solvers.admm.safety.SafetyChecks.checked_pairs`).
     """
     states = np.asarray(states, float)
-    d = settings.dim
-    horizon_time = settings.horizon * settings.dt
-    velocity = np.abs(states[:, d : 2 * d])
-    reach = np.full(velocity.shape, np.inf)
-    if settings.accel is not None:
-        reach = velocity * horizon_time + 0.5 * np.asarray(settings.accel, float) * horizon_time**2
-    if settings.speed is not None:
-        reach = np.minimum(reach, horizon_time * np.maximum(velocity, settings.speed))
-    return reach.max(axis=1)
+    return settings.model.reach_bound(states, settings.horizon, settings.accel, settings.speed)
 
 
 def reach_candidates(states: np.ndarray, settings: OCPSettings, delta: np.ndarray) -> np.ndarray:
@@ -86,10 +78,10 @@ def reach_candidates(states: np.ndarray, settings: OCPSettings, delta: np.ndarra
 
     Parameters
     ----------
-    states : ndarray, shape (M, 2d)
-        Current (measured) states [p, v].
+    states : ndarray, shape (M, n)
+        Current (measured) states of the settings' agent model.
     settings : OCPSettings
-        Horizon, time step, ``d_min`` and the limits (see :func:`reach_radius`).
+        The agent model, the horizon, ``d_min`` and the limits (see :func:`reach_radius`).
     delta : array_like
         One Delta (d,) for every pair, or the agents' body half-sizes (M, d) with
         Delta_ij = b_i + b_j (:func:`swarmpc.model.geometry.as_bodies`).
@@ -111,9 +103,8 @@ def reach_candidates(states: np.ndarray, settings: OCPSettings, delta: np.ndarra
     MPC step.
     """
     states = np.asarray(states, float)
-    d = settings.dim
     reach = reach_radius(states, settings)
-    positions = states[:, :d]
+    positions = settings.model.position(states)
     gaps = np.max(np.abs(positions[:, None, :] - positions[None, :, :]), axis=2)
     limit = largest_pair_delta(as_bodies(delta, len(states))) + settings.d_min
     candidates = gaps < limit + reach[:, None] + reach[None, :]
@@ -125,7 +116,7 @@ def guess_neighbours(
     guess: np.ndarray, settings: OCPSettings, largest_delta: np.ndarray, config: ADMMConfig,
     candidates: np.ndarray | None = None,
 ) -> list[tuple[int, ...]]:
-    """Agents each agent couples with up front (symmetric), from the guesses (M, N+1, 2d).
+    """Agents each agent couples with up front (symmetric), from the guesses (M, N+1, n).
 
     With ``coupling_margin`` None, every other agent (the paper's all-to-all copies). Otherwise
     only reach ``candidates`` (None: every pair) whose guessed trajectories come within
@@ -135,11 +126,11 @@ def guess_neighbours(
     M = len(guess)
     if config.coupling_margin is None:
         return [tuple(j for j in range(M) if j != i) for i in range(M)]
-    first, d = settings.first_constrained_step, settings.dim
+    model, first = settings.model, settings.first_constrained_step
     reach = largest_delta + settings.d_min + config.coupling_margin
-    positions = guess[:, first:, :d]
+    positions = model.position(guess[:, first:])
     gaps = np.max(np.abs(positions[:, None] - positions[None, :]), axis=3).min(axis=2)
-    velocities = guess[:, :, d: 2 * d]
+    velocities = model.velocity(guess)
     closing = np.max(np.abs(velocities[:, None] - velocities[None, :]), axis=(2, 3))
     coupled = gaps < reach + config.closing_time * closing
     if candidates is not None:
@@ -152,25 +143,34 @@ def reachable_guesses(states: np.ndarray, guess: np.ndarray, settings: OCPSettin
     """Which guesses a plan can follow, and their positions at the constrained steps (M, K, d).
 
     A guess is followable when it starts at the measured state and obeys the dynamics and the
-    acceleration limit up to its second-to-last state (a shifted previous plan does; a straight
-    line from rest does not). Its last state repeats the one before; the positions returned
-    coast there instead (zero input), so that a plan can be at every one of them. Planes are
-    placed only between followable guesses: a plane drawn from a guess the agent cannot follow
-    can cut its reachable positions off altogether."""
-    s = settings
-    d, first = s.dim, s.first_constrained_step
-    A, B = discrete_matrices(d, s.dt, s.discretization)  # type: ignore[arg-type]
+    input box (for the double integrator, the acceleration limit) up to its second-to-last state
+    (a shifted previous plan does; a straight line from rest does not): the model's
+    :meth:`~swarmpc.model.agent_model.AgentModel.guess_inputs` between those states must step
+    each to the next. Its last state repeats the one before; the positions returned coast there
+    instead (zero input), so that a plan can be at every one of them. Planes are placed only
+    between followable guesses: a plane drawn from a guess the agent cannot follow can cut its
+    reachable positions off altogether."""
+    s, model = settings, settings.model
+    first = s.first_constrained_step
     head = guess[:, :-1]
-    inputs = np.diff(head[:, :, d:], axis=1) / s.dt  # (M, N-1, d)
-    predicted = head[:, :-1] @ A.T + inputs @ B.T
+    inputs = np.array([model.guess_inputs(states_i) for states_i in head])
+    inputs = inputs.reshape(len(head), head.shape[1] - 1, model.input_dim)  # (M, N-1, m)
+    predicted = model.step(head[:, :-1], inputs)
     scale = 1.0 + np.abs(guess).max(axis=(1, 2))
     ok = np.abs(predicted - head[:, 1:]).max(axis=(1, 2)) <= 1e-6 * scale
     ok &= np.abs(guess[:, 0] - states).max(axis=1) <= 1e-6 * scale
-    if s.accel is not None:
-        ok &= (np.abs(inputs) <= np.asarray(s.accel, float) * (1 + 1e-6) + 1e-9).all(axis=(1, 2))
+    lower, upper = model.input_bounds(s.accel, s.speed)
+    within = (inputs <= _outwards(upper) + 1e-9) & (inputs >= -_outwards(-lower) - 1e-9)
+    ok &= within.all(axis=(1, 2))
     coasting = guess.copy()
-    coasting[:, -1] = guess[:, -2] @ A.T
-    return ok, coasting[:, first:, :d]
+    coasting[:, -1] = model.step(guess[:, -2], np.zeros((len(guess), model.input_dim)))
+    return ok, model.position(coasting[:, first:])
+
+
+def _outwards(upper: np.ndarray) -> np.ndarray:
+    """An upper bound loosened by a millionth of its size (the tolerance of a guess's inputs)."""
+    upper = np.asarray(upper, float)
+    return np.where(upper >= 0.0, upper * (1 + 1e-6), upper * (1 - 1e-6))
 
 
 def plane_pairs(
@@ -189,8 +189,8 @@ def plane_pairs(
         return [], np.empty((0,))
     followable, positions = reachable_guesses(states, guess, settings)
     if goals is not None:
-        d = settings.dim
-        followable &= np.linalg.norm(states[:, :d] - goals[:, :d], axis=1) > PLANE_GOAL_RADIUS
+        model = settings.model
+        followable &= np.linalg.norm(model.position(states) - model.position(goals), axis=1) > PLANE_GOAL_RADIUS
     pairs = []
     for i, n in enumerate(neighbours):
         if not followable[i]:

@@ -116,8 +116,9 @@ class FallbackSolution(NLPSolution):
 class StepRequests:
     """What every request of one MPC step shares, and the requests made from it.
 
-    ``bodies`` (M, d): pair (i, j) keeps Delta_ij = b_i + b_j. ``states`` (M, 2d), ``goals``
-    (M, 2d) and ``guess`` (M, N+1, 2d) are the step's measured states, goals and initial guesses.
+    ``bodies`` (M, d): pair (i, j) keeps Delta_ij = b_i + b_j. ``states`` (M, n), ``goals``
+    (M, n) and ``guess`` (M, N+1, n) are the step's measured states, goals and initial guesses
+    (states of the settings' agent model).
     """
 
     settings: OCPSettings
@@ -140,7 +141,7 @@ class StepRequests:
         if plans is None:
             z_neighbours = z[list(neighbours)]
         else:
-            z_neighbours = np.transpose(plans[0][:, s.first_constrained_step:, : s.dim], (0, 2, 1))
+            z_neighbours = np.transpose(s.model.position(plans[0][:, s.first_constrained_step:]), (0, 2, 1))
         return LocalRequest(
             agent=i,
             state=self.states[i],

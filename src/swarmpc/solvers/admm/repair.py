@@ -18,7 +18,6 @@ from swarmpc.solvers.admm.graph import CouplingGraph
 from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests
 from swarmpc.solvers.admm.safety import SafetyChecks
 
-REPAIR_ROUNDS = 3
 """Most repair passes in one MPC step (the first, plus re-runs after coupling pairs whose repaired
 plans conflict)."""
 
@@ -64,12 +63,13 @@ class Repair:
 
         ``repair_all`` (ADMM stopped without consensus): the repair pass (:meth:`sequential`), and
         again after coupling any candidate pair whose repaired plans conflict, up to
-        :data:`REPAIR_ROUNDS` passes. ``stranded_check``: fallbacks that break the separation from
+        ``config.repair_rounds`` passes. ``stranded_check``: fallbacks that break the separation from
         another plan re-plan against every plan (rescued if their hard solves fail), then their
         neighbours against them."""
         times, failures = np.zeros(len(results)), 0
         states = self.requests.states
-        for round_ in range(REPAIR_ROUNDS if repair_all else 0):
+        rounds = self.requests.config.repair_rounds
+        for round_ in range(rounds if repair_all else 0):
             previous = results
             results = self.sequential(graph, z, rho, results)
             # later passes count only the agents they re-solved
@@ -78,7 +78,7 @@ class Repair:
             # the repair only re-plans against neighbours: couple any candidate pair whose
             # repaired plans now conflict and repair again
             missing = self.safety.missing(results, graph, self.safety.checked_pairs(graph.candidates, states, results))
-            if not missing or round_ == REPAIR_ROUNDS - 1:
+            if not missing or round_ == rounds - 1:
                 break
             graph = graph.coupled(missing)
         stranded = self.safety.stranded_fallbacks(results) if stranded_check else []
@@ -135,6 +135,6 @@ class Repair:
         others = list(graph.neighbours[i])
         pinned = (np.array([plans[j].states for j in others]), np.array([plans[j].inputs for j in others]))
         own_z = z.copy()
-        own_z[i] = plans[i].states[s.first_constrained_step:, : s.dim].T
+        own_z[i] = s.model.position(plans[i].states[s.first_constrained_step:]).T
         request = self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=rescue)
         return self.solve([request])[0]

@@ -103,9 +103,8 @@ class SafetyChecks:
         """``candidates`` plus every pair of an agent whose plan moved farther than its reach bound
         (a replayed fallback under a speed limit, or solver tolerance), so the conflict check never
         relies on a bound a plan broke."""
-        d = self.settings.dim
         own = own_positions(results)
-        moved = np.max(np.abs(own - np.asarray(states)[:, :d, None]), axis=(1, 2))
+        moved = np.max(np.abs(own - self.settings.model.position(np.asarray(states))[:, :, None]), axis=(1, 2))
         escaped = moved > reach_radius(states, self.settings)
         if not escaped.any():
             return candidates

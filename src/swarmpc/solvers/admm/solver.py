@@ -103,7 +103,7 @@ class ADMMSolver:
         return self.safety.pair_delta(first, second)
 
     def neighbours(self, guess: np.ndarray, candidates: np.ndarray | None = None) -> list[tuple[int, ...]]:
-        """Agents each agent couples with up front, from the guesses (M, N+1, 2d), among reach
+        """Agents each agent couples with up front, from the guesses (M, N+1, n), among reach
         ``candidates`` (None: every pair); see :func:`~swarmpc.solvers.admm.graph.guess_neighbours`.
         Candidate pairs left out are checked after convergence and coupled on demand if their
         plans conflict (see :meth:`plan`)."""
@@ -150,7 +150,7 @@ class ADMMSolver:
         a fallback that the agents after it respect and that its close neighbours re-plan around
         (rescued by the least-violating soft plan as a last resort); and every candidate pair that
         can meet within the horizon was checked for conflicts and, if it had one, coupled and
-        repaired (up to :data:`~swarmpc.solvers.admm.repair.REPAIR_ROUNDS` passes). The time of
+        repaired (up to ``solver.admm.repair_rounds`` passes). The time of
         these passes counts on the critical path; when the total exceeds the deadline the step is
         a deadline miss (recorded by the run), never an unchecked plan. Not guaranteed: that the
         critical path stays within the deadline (the first iteration and the safety passes always
@@ -162,7 +162,7 @@ class ADMMSolver:
         cfg, s = self.config, self.settings
         requests = StepRequests(s, cfg, self.bodies, states, goals, guess)
         graph = CouplingGraph.build(states, guess, goals, s, self.bodies, cfg)
-        z = starting_consensus(guess, s.first_constrained_step, s.dim, self.carryover)
+        z = starting_consensus(s.model.position(guess[:, s.first_constrained_step:]), self.carryover)
         run = self._iterate(requests, graph, z)
         repair = cfg.repair or self._clock.stopped  # a deadline stop is never left unrepaired
         safe = Repair(requests, self.safety, self._solve).make_safe(
