@@ -24,8 +24,9 @@ import numpy as np
 from swarmpc.formulation.nlp import CompiledNLP
 from swarmpc.formulation.ocp import LOCAL_IPOPT_OPTIONS, OCPSettings, build_local
 from swarmpc.scenarios import builtin_scenario
+from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.simulation.loop import simulate
-from swarmpc.solvers import admm
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalAgentFactory, LocalSolverLadder
 
 OUT = Path(__file__).parent / "out"
 QUIET_SQP = {"print_header": False, "print_iteration": False, "print_status": False, "print_time": False,
@@ -61,20 +62,29 @@ def record_problems(scenario: str, steps: int, agents: int | None = None) -> tup
     scn = builtin_scenario(scenario, **({"agents": agents} if agents else {})).with_updates(
         **{"stop.max_steps": steps})
     recorded: list[dict[str, Any]] = []
-    original = admm.LocalSolverLadder.solve
 
-    def recording(self, params, guess, fixed=None, *, copies, planes=0, duals=None):  # type: ignore[no-untyped-def]
-        if not planes:  # the candidates are built without separating planes
-            recorded.append({"slots": self.slots_for(copies), "params": params, "guess": guess, "fixed": fixed,
-                             "duals": duals})
-        return original(self, params, guess, fixed, copies=copies, planes=planes, duals=duals)
+    class Recording(LocalSolverLadder):
+        def solve(self, params, guess, fixed=None, *, copies, planes=0, duals=None):  # type: ignore[no-untyped-def]
+            if not planes:  # the candidates are built without separating planes
+                recorded.append({"slots": self.slots_for(copies), "params": params, "guess": guess, "fixed": fixed,
+                                 "duals": duals})
+            return super().solve(params, guess, fixed, copies=copies, planes=planes, duals=duals)
 
-    admm.LocalSolverLadder.solve = recording  # type: ignore[method-assign]
-    try:
-        simulate(scn)
-    finally:
-        admm.LocalSolverLadder.solve = original  # type: ignore[method-assign]
+    recording_run(scn, Recording)
     return admm_settings(scn), recorded
+
+
+def recording_run(scn: Any, ladder_type: type[LocalSolverLadder]) -> None:
+    """``scn`` in closed loop under the scenario's ADMM, the agents' IPOPT ladders of ``ladder_type``."""
+    settings = OCPSettings.from_scenario(scn)
+    config = ADMMConfig.from_options(scn.solver, settings.collision)
+    bodies = planner_bodies(scn)
+    agents = LocalAgentFactory.for_config(settings, bodies, config, ladder_type=ladder_type)
+    solver = ADMMSolver(settings, scn.num_agents, bodies, config, agents=agents)
+    try:
+        simulate(scn, solver=solver)
+    finally:
+        solver.close()
 
 
 def admm_settings(scn: Any) -> OCPSettings:

@@ -2,8 +2,8 @@
 
 The local problems are recorded from a real closed loop: a few MPC steps of ADMM on
 ``builtin_scenario("random", agents=16, dim=3, seed=0)`` (3D, N = 10, hard OBCA, accel limits,
-workspace), with the project's IPOPT local step, through a wrapper around
-``LocalSolverLadder.solve``. Copy counts the run did not produce (10) are made by adding copies
+workspace), with the project's IPOPT local step, through a recording subclass of ``LocalSolverLadder`` handed
+to the agents' factory. Copy counts the run did not produce (10) are made by adding copies
 around a recorded problem's agent. For each size, the QP with the converged certificates of that
 problem (``SequentialLocalQP``) is set up once per solver, then re-solved ``--repeats`` times,
 each time after a small change, warm-started from the previous answer where the solver can:
@@ -46,8 +46,9 @@ import scipy.sparse as sp
 
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.scenarios import builtin_scenario
+from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.simulation.loop import simulate
-from swarmpc.solvers import admm
+from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalAgentFactory, LocalSolverLadder
 from swarmpc.solvers.qp_local import (
     LocalShape,
     OSQPBackend,
@@ -67,25 +68,35 @@ def record_problems(steps: int, best_of: int = 1) -> tuple[OCPSettings, list[dic
     measured state and goal) tells which calls are one agent's ADMM iterations of one MPC step."""
     scn = builtin_scenario("random", agents=16, dim=3, seed=0).with_updates(**{"stop.max_steps": steps})
     recorded: list[dict[str, Any]] = []
-    original = admm.LocalSolverLadder.solve
 
-    def recording(self, params, guess, fixed=None, *, copies, planes=0, duals=None):  # type: ignore[no-untyped-def]
-        solution = original(self, params, guess, fixed, copies=copies, planes=planes, duals=duals)
-        for _ in range(best_of - 1):  # the same call again: IPOPT is deterministic, only the clock is not
-            again = original(self, params, guess, fixed, copies=copies, planes=planes, duals=duals)
-            solution = replace(solution, solve_time=min(solution.solve_time, again.solve_time))
-        if not planes and self.pair_collision is None:  # no rescue problems: soft pairs are their own study
-            key = (tuple(np.round(params["x0"], 12)), tuple(np.round(params["goal"], 12)))
-            recorded.append({"key": key, "params": dict(params), "guess": guess if isinstance(guess, dict) else None,
-                             "fixed": dict(fixed) if fixed else None, "copies": copies, "ipopt": solution})
-        return solution
+    class Recording(LocalSolverLadder):
+        def solve(self, params, guess, fixed=None, *, copies, planes=0, duals=None):  # type: ignore[no-untyped-def]
+            solution = super().solve(params, guess, fixed, copies=copies, planes=planes, duals=duals)
+            for _ in range(best_of - 1):  # the same call again: IPOPT is deterministic, only the clock is not
+                again = super().solve(params, guess, fixed, copies=copies, planes=planes, duals=duals)
+                solution = replace(solution, solve_time=min(solution.solve_time, again.solve_time))
+            if not planes and self.pair_collision is None:  # no rescue problems: soft pairs are their own study
+                key = (tuple(np.round(params["x0"], 12)), tuple(np.round(params["goal"], 12)))
+                recorded.append({"key": key, "params": dict(params),
+                                 "guess": guess if isinstance(guess, dict) else None,
+                                 "fixed": dict(fixed) if fixed else None, "copies": copies, "ipopt": solution})
+            return solution
 
-    admm.LocalSolverLadder.solve = recording  # type: ignore[method-assign]
-    try:
-        simulate(scn)
-    finally:
-        admm.LocalSolverLadder.solve = original  # type: ignore[method-assign]
+    recording_run(scn, Recording)
     return OCPSettings.from_scenario(scn), recorded
+
+
+def recording_run(scn: Any, ladder_type: type[LocalSolverLadder]) -> None:
+    """``scn`` in closed loop under the scenario's ADMM, the agents' IPOPT ladders of ``ladder_type``."""
+    settings = OCPSettings.from_scenario(scn)
+    config = ADMMConfig.from_options(scn.solver, settings.collision)
+    bodies = planner_bodies(scn)
+    agents = LocalAgentFactory.for_config(settings, bodies, config, ladder_type=ladder_type)
+    solver = ADMMSolver(settings, scn.num_agents, bodies, config, agents=agents)
+    try:
+        simulate(scn, solver=solver)
+    finally:
+        solver.close()
 
 
 def with_copies(problem: dict[str, Any], copies: int, s: OCPSettings, rng: np.random.Generator) -> dict[str, Any]:

@@ -9,7 +9,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarmpc.batch import run_batch
 from swarmpc.bench import (
     BenchCase,
     CaseOutcome,
@@ -149,21 +148,16 @@ def test_real_case_recomputes_safety_from_the_trajectory():
     assert (not result.unreached) == result.all_reached == (result.worst_goal_distance <= tolerance + 1e-9)
 
 
-def test_run_bench_writes_table_and_json(tmp_path, monkeypatch):
-    monkeypatch.setattr("swarmpc.bench.run_case", lambda case, runs_dir: outcome(case.family, case.agents, case.seed,
-                                                                        case.method, 100.0))
-    monkeypatch.setattr("swarmpc.bench.run_batch", _in_process)
-    markdown, data = run_bench(tmp_path, quick=True, families=["circle", "random"])
+def test_run_bench_writes_table_and_json(tmp_path):
+    def stand_in(case: BenchCase, runs_dir: object) -> CaseOutcome:
+        return outcome(case.family, case.agents, case.seed, case.method, 100.0)
+
+    markdown, data = run_bench(tmp_path, quick=True, families=["circle", "random"], jobs=1, case_runner=stand_in)
     text = markdown.read_text()
     assert text.count("| circle |") == 2 and text.count("| random |") == 2
     assert len(json.loads(data.read_text())["rows"]) == 4
     with pytest.raises(ValueError, match="families: unknown blob"):
         run_bench(tmp_path, families=["blob"])
-
-
-def _in_process(tasks, jobs, **options):
-    """The batch in this process, in order (the pool itself is tested in test_batch.py)."""
-    return run_batch(tasks, 1, **options)
 
 
 def test_bench_command_writes_its_table(tmp_path):
@@ -226,16 +220,15 @@ def test_merging_the_same_case_twice_or_an_old_report_is_refused(tmp_path):
     assert not (tmp_path / "all").exists()
 
 
-def test_a_bench_cut_short_keeps_the_runs_it_finished(tmp_path, monkeypatch):
+def test_a_bench_cut_short_keeps_the_runs_it_finished(tmp_path):
     def run_or_fail(case: BenchCase, runs_dir: object) -> CaseOutcome:
         if case.seed == 1:
             raise RuntimeError("machine lost")
         return outcome(case.family, case.agents, case.seed, case.method, 100.0)
 
-    monkeypatch.setattr("swarmpc.bench.run_case", run_or_fail)
-    monkeypatch.setattr("swarmpc.bench.run_batch", _in_process)  # finishing in the order submitted
-    with pytest.raises(RuntimeError):
-        run_bench(tmp_path, families=["random"], sizes=[4], seeds=2, central_max_agents=0)
+    with pytest.raises(RuntimeError):  # one job: in this process, finishing in the order submitted
+        run_bench(tmp_path, families=["random"], sizes=[4], seeds=2, central_max_agents=0, jobs=1,
+                  case_runner=run_or_fail)
     data = json.loads((tmp_path / "bench.json").read_text())
     assert [r["case"]["seed"] for r in data["runs"]] == [0] and data["planned_runs"] == 2
     assert "1 of 2 runs" in (tmp_path / "bench.md").read_text()

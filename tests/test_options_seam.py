@@ -342,3 +342,30 @@ def test_command_line_executor_options_are_checked_against_the_section(executor,
     code, stderr, _ = run_folder(tmp_path, executor, *args)
     assert code == 2 and stderr.startswith(f"swarmpc: error: {message}") and stderr.count("\n") == 1, stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_a_ladder_type_handed_to_the_agents_factory_solves_every_local_problem():
+    """Library-only knob: benchmarks record the local problems through a ladder subclass."""
+    from swarmpc.scenarios import builtin_scenario
+    from swarmpc.simulation.disturbance import planner_bodies
+    from swarmpc.simulation.loop import simulate
+    from swarmpc.solvers.admm import ADMMConfig, ADMMSolver, LocalAgentFactory, LocalSolverLadder
+
+    calls: list[int] = []
+
+    class Counting(LocalSolverLadder):
+        def solve(self, *args: Any, **kwargs: Any) -> Any:
+            calls.append(kwargs["copies"])
+            return super().solve(*args, **kwargs)
+
+    scn = builtin_scenario("paper-2d").with_updates(**{"stop.max_steps": 3})
+    settings = OCPSettings.from_scenario(scn)
+    config = ADMMConfig.from_options(scn.solver, settings.collision)
+    bodies = planner_bodies(scn)
+    agents = LocalAgentFactory.for_config(settings, bodies, config, ladder_type=Counting)
+    solver = ADMMSolver(settings, scn.num_agents, bodies, config, agents=agents)
+    try:
+        result = simulate(scn, solver=solver)
+    finally:
+        solver.close()
+    assert len(calls) >= scn.num_agents * result.summary["steps"]  # every agent, every step at least once

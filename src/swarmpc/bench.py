@@ -400,6 +400,7 @@ def run_bench(
     first_seed: int = 0,
     save_runs: bool = False,
     plane_margin: float | None = None,
+    case_runner: Callable[[BenchCase, Path | None], CaseOutcome] = run_case,
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
 
@@ -409,7 +410,8 @@ def run_bench(
     study (``KeyboardInterrupt``, raised once the workers are down) keeps what it measured. A case
     that fails is logged and left out; the others still run, and a ``RuntimeError`` naming the
     failures follows the last report. ``save_runs`` keeps every run's folder under ``out/runs``;
-    ``plane_margin`` sets ``solver.plane_margin`` of every ADMM case.
+    ``plane_margin`` sets ``solver.plane_margin`` of every ADMM case. ``case_runner`` runs one case
+    (a module-level function when ``jobs`` > 1, so that worker processes can load it).
     """
     unknown = sorted(set(families) - set(FAMILIES))
     if unknown:
@@ -425,7 +427,7 @@ def run_bench(
     failures: list[str] = []
     started = time.perf_counter()
     paths = (out / "bench.md", out / "bench.json")
-    tasks = [Task(run_case, (case, out / "runs" if save_runs else None)) for case in cases]
+    tasks = [Task(case_runner, (case, out / "runs" if save_runs else None)) for case in cases]
     with closing(run_batch(tasks, jobs)) as finished:
         for done, result in enumerate(finished, 1):
             log(f"[{done}/{len(cases)}] {_progress(cases[result.index], result)}")

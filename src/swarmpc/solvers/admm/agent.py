@@ -464,12 +464,14 @@ class LocalAgentFactory:
     ``local`` "qp": each ladder is a :class:`QPLocalSolverLadder` (the QP path, with these IPOPT
     ladders as its fallback), the rescue ladder too (the QP path's soft pair form); ``qp_backend``
     makes the QP path's solver (None: OSQP, :class:`swarmpc.solvers.qp_local.QPLocalLadder`'s own).
+    ``ladder_type`` builds the IPOPT ladders (a subclass can record or alter the local problems).
     """
 
     def __init__(
         self, settings: OCPSettings, slots: int, dynamic_copies: bool = True, seed_duals: bool = True,
         warm_start: bool = False, bodies: np.ndarray | None = None, local: Literal["qp", "ipopt"] = "ipopt",
         qp_backend: Callable[[QPLocalOptions], QPBackend] | None = None,
+        ladder_type: type[LocalSolverLadder] = LocalSolverLadder,
     ) -> None:
         if local == "qp" and dynamic_copies:
             raise ValueError("local: qp needs free copies (dynamic_copies False)")
@@ -481,6 +483,7 @@ class LocalAgentFactory:
         self.bodies = None if bodies is None else np.asarray(bodies, float)
         self.local = local
         self.qp_backend = qp_backend
+        self.ladder_type = ladder_type
         self._ladders: dict[tuple[bytes, ...], tuple[AgentLadder, AgentLadder | None]] = {}
         self.ladder, self.rescue = self._ladders_for(settings)
 
@@ -488,18 +491,19 @@ class LocalAgentFactory:
     def for_config(
         cls, settings: OCPSettings, bodies: np.ndarray, config: ADMMConfig,
         qp_backend: Callable[[QPLocalOptions], QPBackend] | None = None,
+        ladder_type: type[LocalSolverLadder] = LocalSolverLadder,
     ) -> LocalAgentFactory:
         """The agents of an :class:`~swarmpc.solvers.admm.solver.ADMMSolver` with ``config`` for
         agents of ``bodies`` (M, d): as many copy slots as other agents."""
         return cls(settings, max(len(bodies) - 1, 1), config.dynamic_copies, config.seed_duals, config.warm_start,
-                   bodies=bodies, local=config.local, qp_backend=qp_backend)
+                   bodies=bodies, local=config.local, qp_backend=qp_backend, ladder_type=ladder_type)
 
     def _ladders_for(self, settings: OCPSettings) -> tuple[AgentLadder, AgentLadder | None]:
         """The (ladder, rescue ladder) of problems with ``settings``' obstacles, made on first use."""
         key = tuple(np.asarray(g, float).tobytes() for _, g in settings.obstacles)
         if key not in self._ladders:
-            ladder = LocalSolverLadder(settings, self.slots, self.dynamic_copies, warm_start=self.warm_start)
-            rescue = (LocalSolverLadder(settings, self.slots, self.dynamic_copies, pair_collision="soft")
+            ladder = self.ladder_type(settings, self.slots, self.dynamic_copies, warm_start=self.warm_start)
+            rescue = (self.ladder_type(settings, self.slots, self.dynamic_copies, pair_collision="soft")
                       if settings.collision == "hard" else None)
             self._ladders[key] = (ladder, rescue) if self.local == "ipopt" else (
                 QPLocalSolverLadder(self._qp(settings), ladder),
