@@ -77,7 +77,7 @@ def test_aggregate_rates_and_cost_gap():
     assert row["agent_ms_median"] == pytest.approx(4.0) and row["iterations_max"] == 3
     assert row["copies_mean"] is None  # none recorded
     table = markdown_table(rows)
-    assert "| random | 4 | 2 | 50% | 50% |" in table and "+10.0%" in table
+    assert "| random | 4 | ipopt | 2 | 50% | 50% |" in table and "+10.0%" in table
     with_copies = [CaseOutcome(**{**outcome("random", 8, seed, "admm", 1.0).__dict__, "copies_mean": held,
                                   "planes_mean": planes})
                    for seed, held, planes in ((0, 1.0, 0.5), (1, 2.0, 1.0))]
@@ -169,7 +169,7 @@ def test_bench_command_writes_its_table(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == str(out / "bench.md")
     table = (out / "bench.md").read_text()
-    assert "| circle | 2 | 1 |" in table
+    assert "| circle | 2 | ipopt | 1 |" in table
     data = json.loads((out / "bench.json").read_text())
     assert {r["case"]["method"] for r in data["runs"]} == {"admm", "centralized"}
     assert all(r["steps"] == 5 and r["collisions"] == 0 for r in data["runs"])
@@ -211,7 +211,7 @@ def test_reports_of_split_studies_merge_into_the_table_of_all_their_runs(tmp_pat
 
 def test_merging_the_same_case_twice_or_an_old_report_is_refused(tmp_path):
     write_report(tmp_path / "a", [outcome("random", 8, 0, "admm", 1.0)], "m", 1.0)
-    with pytest.raises(ValueError, match="random M=8 seed=0 admm is in both"):
+    with pytest.raises(ValueError, match="random M=8 seed=0 admm ipopt is in both"):
         merge_reports([tmp_path / "a", tmp_path / "a"], tmp_path / "all")
     old = tmp_path / "old.json"
     old.write_text(json.dumps({"runs": [{"case": {"family": "random", "agents": 8, "seed": 1}, "step_ms": None}]}))
@@ -253,3 +253,71 @@ def test_a_plane_margin_reaches_the_admm_cases_only():
     assert by_method == {"admm": 0.05, "centralized": None}
     unset = plan_cases(["random"], [4], 1, "serial", None, 60.0, 0)
     assert all(c.scenario().solver.plane_margin is None for c in unset)
+
+
+# --- both local steps side by side ----------------------------------------------------------------
+def test_each_admm_case_runs_once_per_local_step_one_after_the_other():
+    cases = plan_cases(["random"], [4], 2, "serial", None, 60.0, 4, locals_=("qp", "ipopt"))
+    assert [(c.seed, c.method, c.local) for c in cases] == [
+        (0, "admm", "qp"), (0, "admm", "ipopt"), (0, "centralized", "ipopt"),
+        (1, "admm", "qp"), (1, "admm", "ipopt"), (1, "centralized", "ipopt")]  # the reference runs once
+    assert [c.scenario().solver.local for c in cases[:2]] == ["qp", "ipopt"]
+    assert [c.label for c in cases[:3]] == ["random-M4-seed0-admm-qp", "random-M4-seed0-admm",
+                                            "random-M4-seed0-centralized"]
+    assert plan_cases(["random"], [4], 1, "serial", None, 60.0, 0) == [BenchCase("random", 4, 0, budget_s=60.0)]
+    for wrong in (("blob",), (), ("qp", "qp")):
+        with pytest.raises(ValueError, match="local: "):
+            plan_cases(["random"], [4], 1, "serial", None, 60.0, 0, locals_=wrong)
+
+
+def test_run_bench_with_two_local_steps_writes_a_row_for_each(tmp_path):
+    def stand_in(case: BenchCase, runs_dir: object) -> CaseOutcome:
+        made = outcome(case.family, case.agents, case.seed, case.method, 110.0 if case.local == "qp" else 100.0)
+        fallbacks = 3 if case.local == "qp" and case.method == "admm" else 0
+        return CaseOutcome(**{**made.__dict__, "case": case, "local_fallbacks": fallbacks})
+
+    markdown, data = run_bench(tmp_path, families=["random"], sizes=[4, 8], seeds=2, jobs=1, central_max_agents=4,
+                               case_runner=stand_in, locals_=("qp", "ipopt"))
+    report = json.loads(data.read_text())
+    assert [(r["agents"], r["local"], r["runs"], r["local_fallbacks"]) for r in report["rows"]] == [
+        (4, "ipopt", 2, 0), (4, "qp", 2, 6), (8, "ipopt", 2, 0), (8, "qp", 2, 6)]
+    gaps = {(r["agents"], r["local"]): r["cost_gap_pct_median"] for r in report["rows"]}
+    assert gaps[4, "qp"] == pytest.approx(10.0) and gaps[4, "ipopt"] == pytest.approx(0.0)  # one reference
+    assert sum(r["case"]["method"] == "centralized" for r in report["runs"]) == 2
+    assert set(report["growth"]) == {"random", "random/qp"}
+    table = markdown.read_text()
+    assert "| random | 4 | ipopt | 2 |" in table and "| random | 4 | qp | 2 |" in table
+    assert "| local fallbacks |" in table
+
+
+def test_bench_command_compares_both_local_steps_in_one_run(tmp_path):
+    from conftest import run_cli
+
+    out = tmp_path / "bench"
+    done = run_cli("bench", "--families", "circle", "--sizes", "2", "--max-steps", "5", "--jobs", "1",
+                   "--central-max-agents", "0", "--local", "qp,ipopt", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    data = json.loads((out / "bench.json").read_text())
+    assert [(r["case"]["method"], r["case"]["local"]) for r in data["runs"]] == [("admm", "qp"), ("admm", "ipopt")]
+    assert all(r["steps"] == 5 and r["local_fallbacks"] >= 0 for r in data["runs"])
+    assert data["runs"][1]["local_fallbacks"] == 0  # the IPOPT local step has nothing to fall back from
+    table = (out / "bench.md").read_text()
+    assert "| circle | 2 | ipopt | 1 |" in table and "| circle | 2 | qp | 1 |" in table
+    refused = run_cli("bench", "--local", "qp,blob", "--out", str(tmp_path / "b"))
+    assert refused.returncode == 2 and "--local" in refused.stderr and not (tmp_path / "b").exists()
+
+
+def test_a_report_from_before_local_steps_merges_as_ipopt(tmp_path):
+    write_report(tmp_path / "old", [outcome("random", 8, 0, "admm", 1.0)], "m", 1.0)
+    data = json.loads((tmp_path / "old" / "bench.json").read_text())
+    for run in data["runs"]:
+        del run["case"]["local"], run["local_fallbacks"]
+    (tmp_path / "old" / "bench.json").write_text(json.dumps(data))
+    (old,) = load_outcomes(tmp_path / "old")
+    assert old.case.local == "ipopt" and old.local_fallbacks is None
+    qp = CaseOutcome(**{**outcome("random", 8, 0, "admm", 1.0).__dict__,
+                        "case": BenchCase("random", 8, 0, local="qp"), "local_fallbacks": 2})
+    write_report(tmp_path / "new", [qp], "m", 1.0)
+    _, merged = merge_reports([tmp_path / "old", tmp_path / "new"], tmp_path / "all")  # not the same case
+    rows = json.loads(merged.read_text())["rows"]
+    assert [(r["local"], r["local_fallbacks"]) for r in rows] == [("ipopt", None), ("qp", 2)]

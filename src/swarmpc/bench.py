@@ -7,7 +7,10 @@ apart and >= 0.1 m from each other's delta box, acceleration <= 1 m/s² per axis
 neighbourhoods stay the size they have at M = 8 and the work per agent can be read against M
 alone). Each case is one closed-loop run; cases run side by side in worker processes
 (:mod:`swarmpc.batch`), or one after another in this process with one job. Collisions and
-separations come from the run's trajectory, never from a flag.
+separations come from the run's trajectory, never from a flag. An ADMM case can run once per
+local step (``solver.local``: ``ipopt``, ``qp``), the runs of one case planned one after the
+other, so that the two local steps are measured on the machine in the same state; the table
+then has a row per local step, with the local solves the QP local step handed to IPOPT.
 Numbers are wall-clock measurements on whatever machine runs it: read them as such.
 
 Closed-loop quality (:mod:`swarmpc.simulation.quality`): each run's makespan and largest overshoot,
@@ -34,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from swarmpc.batch import Finished, QuietStart, Task, run_batch
-from swarmpc.config import Scenario, scenario_from_dict
+from swarmpc.config import Scenario, SolverConfig, scenario_from_dict
 from swarmpc.model.geometry import body_separation_ratio, count_body_collisions
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.loop import StopFlag, simulate
@@ -48,6 +51,11 @@ SEEDED_FAMILIES = ("random", "spread")
 DEFAULT_FAMILIES = ("circle", "sphere", "random")
 FULL_SIZES = (4, 8, 16, 32, 64)
 QUICK_SIZES = (4, 8)
+LOCAL_STEPS = ("ipopt", "qp")
+"""The ADMM agents' local steps a case can use (``solver.local``)."""
+DEFAULT_LOCAL: str = SolverConfig.model_fields["local"].default
+"""The local step of the benchmark's scenarios (a scenario's ``solver.local`` unless it sets one),
+also that of a ``bench.json`` run written before cases recorded theirs."""
 
 
 @dataclass(frozen=True)
@@ -64,6 +72,9 @@ class BenchCase:
     max_steps: int | None = None
     plane_margin: float | None = None
     """``solver.plane_margin`` of an ADMM case (None: the scenario's own)."""
+    local: str = DEFAULT_LOCAL
+    """``solver.local`` of an ADMM case: the agents' local step, ``ipopt`` or ``qp`` (a centralised
+    case has none and keeps the default)."""
 
     def scenario(self) -> Scenario:
         """The case's scenario (built-in generators; see the module docstring)."""
@@ -77,12 +88,22 @@ class BenchCase:
             updates["stop.max_steps"] = self.max_steps
         if self.plane_margin is not None and self.method == "admm":
             updates["solver.plane_margin"] = self.plane_margin
+        if self.method == "admm":
+            updates["solver.local"] = self.local
         return scn.with_updates(**updates)
 
     @property
     def label(self) -> str:
-        """A name for the case's run folder: ``random-M64-seed1-admm``."""
-        return f"{self.family}-M{self.agents}-seed{self.seed}-{self.method}"
+        """A name for the case's run folder: ``random-M64-seed1-admm``, with the local step appended
+        when it is not the default one (``random-M64-seed1-admm-qp``)."""
+        local = f"-{self.local}" if self.method == "admm" and self.local != DEFAULT_LOCAL else ""
+        return f"{self.family}-M{self.agents}-seed{self.seed}-{self.method}{local}"
+
+    @property
+    def name(self) -> str:
+        """The case in words, for progress lines and messages: ``random M=64 seed=1 admm qp``."""
+        local = f" {self.local}" if self.method == "admm" else ""
+        return f"{self.family} M={self.agents} seed={self.seed} {self.method}{local}"
 
 
 @dataclass(frozen=True)
@@ -127,6 +148,9 @@ class CaseOutcome:
     deadline_misses: int | None = None
     """Steps whose critical path exceeded the run's budget (``summary.json`` ``deadline_misses``:
     ``solver.deadline``, else dt); None in a report written before it was recorded."""
+    local_fallbacks: int | None = None
+    """Local solves the QP local step failed and IPOPT answered instead (``summary.json``
+    ``local_fallbacks``; 0 on the IPOPT local step); None in a report written before it was recorded."""
 
 
 
@@ -168,6 +192,7 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         agent_step_ms=[1000.0 * t for r in records for t in r.agent_times],
         critical_path_ms=[1000.0 * r.critical_path_s for r in records],
         deadline_misses=int(summary["deadline_misses"]),
+        local_fallbacks=int(summary["local_fallbacks"]),
         iterations=[int(r.admm_iterations) for r in records if r.admm_iterations is not None],
         solver_failures=int(summary["solver_failures"]),
         wall_time_s=wall,
@@ -216,19 +241,36 @@ def _mean(values: Sequence[Any]) -> float | None:
 def plan_cases(
     families: Iterable[str], sizes: Iterable[int], seeds: int, executor: str, workers: int | None,
     budget_s: float, central_max_agents: int, max_steps: int | None = None, first_seed: int = 0,
-    plane_margin: float | None = None,
+    plane_margin: float | None = None, locals_: Sequence[str] = (DEFAULT_LOCAL,),
 ) -> list[BenchCase]:
     """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed).
     The random and spread families run seeds ``first_seed`` … ``first_seed + seeds - 1``, so a long
-    study can be split over machines or sessions without repeating a seed."""
-    cases = []
+    study can be split over machines or sessions without repeating a seed. Each ADMM case runs once
+    per local step of ``locals_``, one right after the other (so that they meet the machine in the
+    same state); the centralised reference runs once."""
+    _check_locals(locals_)
+    cases: list[BenchCase] = []
     for family in families:
         for m in sizes:
             for seed in (range(first_seed, first_seed + seeds) if family in SEEDED_FAMILIES else range(1)):
-                cases.append(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps, plane_margin))
+                cases.extend(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps, plane_margin,
+                                       local) for local in locals_)
                 if m <= central_max_agents:
                     cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps))
     return cases
+
+
+def _check_locals(locals_: Sequence[str]) -> None:
+    """ValueError (``local: ...``) unless ``locals_`` names local steps, each once."""
+    unknown = sorted(set(locals_) - set(LOCAL_STEPS))
+    if unknown or not locals_ or len(set(locals_)) != len(locals_):
+        problem = f"unknown {', '.join(unknown)}" if unknown else "none given" if not locals_ else "repeated"
+        raise ValueError(f"local: {problem} (choose from {', '.join(LOCAL_STEPS)}, each once)")
+
+
+def _row_order(key: tuple[str, int, str]) -> tuple[int, int, int]:
+    family, m, local = key
+    return FAMILIES.index(family), m, LOCAL_STEPS.index(local) if local in LOCAL_STEPS else len(LOCAL_STEPS)
 
 
 def _percentile(values: Sequence[float], q: float) -> float | None:
@@ -236,11 +278,16 @@ def _percentile(values: Sequence[float], q: float) -> float | None:
 
 
 def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
-    """One row per (family, size): rates over seeds, pooled step statistics, cost gap vs centralised."""
+    """One row per (family, size, ADMM local step): rates over seeds, pooled step statistics, cost
+    gap vs centralised (the one centralised run of a seed is every local step's reference)."""
     rows = []
-    keys = sorted({(o.case.family, o.case.agents) for o in outcomes}, key=lambda k: (FAMILIES.index(k[0]), k[1]))
-    for family, m in keys:
-        admm = [o for o in outcomes if (o.case.family, o.case.agents, o.case.method) == (family, m, "admm")]
+    keys = {(o.case.family, o.case.agents, o.case.local) for o in outcomes if o.case.method == "admm"}
+    admm_sizes = {key[:2] for key in keys}
+    keys |= {(o.case.family, o.case.agents, DEFAULT_LOCAL) for o in outcomes
+             if (o.case.family, o.case.agents) not in admm_sizes}  # centralised only: one row
+    for family, m, local in sorted(keys, key=_row_order):
+        admm = [o for o in outcomes
+                if (o.case.family, o.case.agents, o.case.method, o.case.local) == (family, m, "admm", local)]
         central = {o.case.seed: o for o in outcomes
                    if (o.case.family, o.case.agents, o.case.method) == (family, m, "centralized")}
         gaps = [100.0 * (o.cost / central[o.case.seed].cost - 1.0) for o in admm
@@ -253,8 +300,9 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
         ratios = [o.interaction_ratio for o in admm if o.interaction_ratio is not None]
         critical = [t for o in admm for t in o.critical_path_ms or ()]
         misses = [o.deadline_misses for o in admm if o.deadline_misses is not None]
+        handed = [o.local_fallbacks for o in admm if o.local_fallbacks is not None]
         rows.append({
-            "family": family, "agents": m, "runs": len(admm),
+            "family": family, "agents": m, "local": local, "runs": len(admm),
             "all_reached_rate": float(np.mean([o.all_reached for o in admm])) if admm else None,
             "collision_free_rate": float(np.mean([o.collisions == 0 for o in admm])) if admm else None,
             "timed_out": sum(o.timed_out for o in admm),
@@ -272,6 +320,7 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
             "iterations_mean": float(np.mean(iterations)) if iterations else None,
             "iterations_max": max(iterations, default=None),
             "solver_failures": sum(o.solver_failures for o in admm),
+            "local_fallbacks": sum(handed) if handed else None,
             "cost_gap_pct_median": _percentile(gaps, 50),
             "central_step_ms_median": _percentile([t for o in central.values() for t in o.step_ms], 50),
             "copies_mean": _mean([o.copies_mean for o in admm if o.copies_mean is not None]),
@@ -285,36 +334,41 @@ def growth_exponents(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]
     log(median) against log(M), for the per-step wall time and the per-agent compute.
 
     k <= 1 for the step time is "no worse than linear in M"; the per-agent k says how the work of
-    one agent grows with the swarm (0 when neighbourhoods do not grow).
+    one agent grows with the swarm (0 when neighbourhoods do not grow). Rows of another local step
+    than the default one are fitted apart, under ``family/local`` (``circle/qp``), and each fit
+    names its ``local``.
     """
     out: dict[str, dict[str, Any]] = {}
-    for family in dict.fromkeys(r["family"] for r in rows):
+    for family, local in dict.fromkeys((r["family"], r.get("local", DEFAULT_LOCAL)) for r in rows):
         exponents: dict[str, Any] = {}
         for key, name in (("step_ms_median", "step"), ("agent_ms_median", "agent")):
             points = [(r["agents"], r[key]) for r in rows
-                      if r["family"] == family and r[key] is not None and r[key] > 0]
+                      if (r["family"], r.get("local", DEFAULT_LOCAL)) == (family, local)
+                      and r[key] is not None and r[key] > 0]
             if len({m for m, _ in points}) >= 2:
                 log_m, log_t = np.log([m for m, _ in points]), np.log([t for _, t in points])
                 exponents[name] = float(np.polyfit(log_m, log_t, 1)[0])
                 exponents["sizes"] = sorted(m for m, _ in points)
         if exponents:
-            out[family] = exponents
+            out[family if local == DEFAULT_LOCAL else f"{family}/{local}"] = {**exponents, "local": local}
     return out
 
 
 def step_growth_interval(
     outcomes: Sequence[CaseOutcome], family: str, level: float = 0.9, repeats: int = 1000, seed: int = 0,
+    local: str = DEFAULT_LOCAL,
 ) -> tuple[float, float] | None:
     """How far the per-step exponent could move with other seeds: a percentile bootstrap over runs.
 
-    Each repeat draws, at every size, as many ADMM runs as there are, with replacement, pools
-    their step times and fits the exponent of the medians as :func:`growth_exponents` does. The
-    ``level`` interval of those fits is returned, or None when a size has fewer than two runs or
-    there are fewer than two sizes (nothing to resample, or nothing to fit).
+    Each repeat draws, at every size, as many ADMM runs (of local step ``local``) as there are,
+    with replacement, pools their step times and fits the exponent of the medians as
+    :func:`growth_exponents` does. The ``level`` interval of those fits is returned, or None when
+    a size has fewer than two runs or there are fewer than two sizes (nothing to resample, or
+    nothing to fit).
     """
     by_size: dict[int, list[np.ndarray]] = {}
     for o in outcomes:
-        if o.case.family == family and o.case.method == "admm" and o.step_ms:
+        if o.case.family == family and o.case.method == "admm" and o.case.local == local and o.step_ms:
             by_size.setdefault(o.case.agents, []).append(np.asarray(o.step_ms, dtype=float))
     if len(by_size) < 2 or min(len(runs) for runs in by_size.values()) < 2:
         return None
@@ -357,16 +411,17 @@ def _cell(value: Any, fmt: str = "{:.1f}") -> str:
 
 
 def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
-    """The benchmark table (one line per family and swarm size)."""
-    header = ("| family | M | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
+    """The benchmark table (one line per family, swarm size and ADMM local step). ``local
+    fallbacks``: the local solves the QP local step handed to IPOPT, over the row's runs."""
+    header = ("| family | M | local | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
               "| makespan s | overshoot max m | makespan vs lone "
               "| step ms median | p95 | critical path ms median | p99 | deadline misses "
               "| per-agent ms median | p95 | p99 | wall s per run | ADMM it. mean | max | failures "
-              "| cost vs central | central step ms | copies per agent | planes per agent |")
+              "| local fallbacks | cost vs central | central step ms | copies per agent | planes per agent |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         lines.append("| " + " | ".join([
-            r["family"], str(r["agents"]), str(r["runs"]),
+            r["family"], str(r["agents"]), str(r.get("local", DEFAULT_LOCAL)), str(r["runs"]),
             _cell(None if r["all_reached_rate"] is None else 100 * r["all_reached_rate"], "{:.0f}%"),
             _cell(None if r["collision_free_rate"] is None else 100 * r["collision_free_rate"], "{:.0f}%"),
             str(r["timed_out"]), _cell(r["min_separation_ratio"], "{:.2f}"),
@@ -377,7 +432,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
             _cell(r.get("deadline_misses")),
             _cell(r["agent_ms_median"]), _cell(r["agent_ms_p95"]), _cell(r.get("agent_ms_p99")),
             _cell(r.get("wall_s_per_run_median")), _cell(r["iterations_mean"]),
-            _cell(r["iterations_max"]), str(r["solver_failures"]),
+            _cell(r["iterations_max"]), str(r["solver_failures"]), _cell(r.get("local_fallbacks")),
             _cell(r["cost_gap_pct_median"], "{:+.1f}%"), _cell(r["central_step_ms_median"]),
             _cell(r.get("copies_mean"), "{:.2f}"), _cell(r.get("planes_mean"), "{:.2f}"),
         ]) + " |")
@@ -401,6 +456,7 @@ def run_bench(
     save_runs: bool = False,
     plane_margin: float | None = None,
     case_runner: Callable[[BenchCase, Path | None], CaseOutcome] = run_case,
+    locals_: Sequence[str] = (DEFAULT_LOCAL,),
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
 
@@ -410,8 +466,10 @@ def run_bench(
     study (``KeyboardInterrupt``, raised once the workers are down) keeps what it measured. A case
     that fails is logged and left out; the others still run, and a ``RuntimeError`` naming the
     failures follows the last report. ``save_runs`` keeps every run's folder under ``out/runs``;
-    ``plane_margin`` sets ``solver.plane_margin`` of every ADMM case. ``case_runner`` runs one case
-    (a module-level function when ``jobs`` > 1, so that worker processes can load it).
+    ``plane_margin`` sets ``solver.plane_margin`` of every ADMM case. ``locals_`` are the ADMM
+    agents' local steps (``solver.local``) to compare: every ADMM case runs once with each, the
+    runs of a case one after the other, and the table has a row per local step. ``case_runner``
+    runs one case (a module-level function when ``jobs`` > 1, so that worker processes can load it).
     """
     unknown = sorted(set(families) - set(FAMILIES))
     if unknown:
@@ -420,7 +478,7 @@ def run_bench(
     seeds = seeds or (1 if quick else 5)
     cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
                        min(central_max_agents, 4) if quick else central_max_agents, max_steps, first_seed,
-                       plane_margin)
+                       plane_margin, tuple(locals_))
     jobs = jobs or (1 if executor != "serial" else available_cores())
     machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
     outcomes: list[CaseOutcome] = []
@@ -446,7 +504,7 @@ def run_bench(
 
 def _progress(case: BenchCase, result: Finished) -> str:
     """The progress line of a finished case (without its ``[k/n]``)."""
-    name = f"{case.family} M={case.agents} seed={case.seed} {case.method}"
+    name = case.name
     if not result.ok:
         return f"{name}: FAILED ({result.error})"
     outcome: CaseOutcome = result.value
@@ -473,8 +531,8 @@ def write_report(
     progress = f"{len(outcomes)} runs" if len(outcomes) == planned else f"{len(outcomes)} of {planned} runs"
     markdown, json_path = out / "bench.md", out / "bench.json"
     growth = growth_exponents(rows)
-    for family, g in growth.items():
-        interval = step_growth_interval(outcomes, family)
+    for key, g in growth.items():
+        interval = step_growth_interval(outcomes, key.split("/")[0], local=g["local"])
         if interval is not None and "step" in g:
             g["step_interval"] = list(interval)
     fits = f"\nGrowth with the swarm size (least-squares fit on log-log):\n\n{growth_lines(growth)}" if growth else ""
@@ -527,6 +585,7 @@ _OUTCOME_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyT
     "interaction_ratio": (_is_finite_or_none, "a number or null"),
     "critical_path_ms": (lambda v: v is None or _is_finite_list(v), "a list of finite numbers or null"),
     "deadline_misses": (lambda v: v is None or _is_count(v), "a count or null"),
+    "local_fallbacks": (lambda v: v is None or _is_count(v), "a count or null"),
 })  # fmt: skip
 """What each field of a ``bench.json`` run must hold (what :func:`write_report` writes)."""
 
@@ -538,6 +597,7 @@ _CASE_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyType
     "workers": (lambda v: v is None or _is_count(v), "a count or null"),
     "budget_s": (_is_finite, "a finite number"), "max_steps": (lambda v: v is None or _is_count(v), "a count or null"),
     "plane_margin": (_is_finite_or_none, "a number or null"),
+    "local": (lambda v: v in LOCAL_STEPS, f"one of {', '.join(LOCAL_STEPS)}"),
 })  # fmt: skip
 
 
@@ -619,9 +679,7 @@ def merge_reports(sources: Sequence[Path], out: Path) -> tuple[Path, Path]:
         runs, machine, seconds = read_report(source)
         for outcome in runs:
             if outcome.case in seen:
-                c = outcome.case
-                raise ValueError(f"case {c.family} M={c.agents} seed={c.seed} {c.method} is in both "
-                                 f"{seen[outcome.case]} and {source}")
+                raise ValueError(f"case {outcome.case.name} is in both {seen[outcome.case]} and {source}")
             seen[outcome.case] = source
             outcomes.append(outcome)
         machines.append(machine)

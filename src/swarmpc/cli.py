@@ -616,13 +616,16 @@ def bench(
     max_steps: Annotated[int | None, typer.Option(min=1, help="override every case's step cap")] = None,
     plane_margin: Annotated[float | None, typer.Option(
         min=0.0, help="solver.plane_margin of every ADMM case [m] [the scenarios' own: off]")] = None,
+    local: Annotated[str | None, typer.Option(
+        help="comma-separated ADMM local steps (qp, ipopt): every ADMM case runs once with each, side by side "
+        "in the table [the scenarios' own: ipopt]")] = None,
     save_runs: Annotated[bool, typer.Option("--save-runs", help="keep every run's folder under OUT/runs")] = False,
     merge: Annotated[list[Path] | None, typer.Option(
         help="run nothing: one report from these earlier bench.json files or folders (repeatable)")] = None,
 ) -> None:
     """The scaling benchmark: swarms of growing size; writes OUT/bench.md and OUT/bench.json
     (rewritten after every finished run, so a long study interrupted keeps what it measured)."""
-    from swarmpc.bench import FAMILIES, merge_reports, run_bench
+    from swarmpc.bench import DEFAULT_LOCAL, FAMILIES, LOCAL_STEPS, merge_reports, run_bench
 
     if merge:
         try:
@@ -643,6 +646,10 @@ def bench(
     unknown = sorted(set(family_list) - set(FAMILIES))
     if unknown or not family_list:
         fail(f"--families: unknown {', '.join(unknown) or 'none given'} (choose from {', '.join(FAMILIES)})")
+    local_list = [v.strip() for v in local.split(",") if v.strip()] if local is not None else [DEFAULT_LOCAL]
+    if not local_list or set(local_list) - set(LOCAL_STEPS) or len(set(local_list)) != len(local_list):
+        fail(f"--local: expected comma-separated local steps, each once, from {', '.join(LOCAL_STEPS)}; "
+             f"got {local!r}")
     try:
         with claimed_out_folder(out, "bench"):
             markdown, _ = run_bench(
@@ -650,7 +657,7 @@ def bench(
                 sizes=size_list, seeds=seeds, jobs=jobs, executor=executor.value, workers=workers,
                 budget_s=budget, central_max_agents=central_max_agents, max_steps=max_steps,
                 log=lambda line: typer.echo(line, err=True), first_seed=first_seed, save_runs=save_runs,
-                plane_margin=plane_margin,
+                plane_margin=plane_margin, locals_=local_list,
             )
     except typer.Exit:  # a RuntimeError too: the command's own one-line refusal
         raise

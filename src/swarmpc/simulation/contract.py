@@ -218,6 +218,11 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
         "Steps in which at least one agent applied a safe fallback plan.",
     ),
     KeyDoc("fallback_agent_steps", "integer", "–", "always", "(step, agent) pairs that applied a fallback plan."),
+    KeyDoc(
+        "local_fallbacks", "integer", "–", "always",
+        "Local solves that the QP local step (`solver.local: qp`) failed and IPOPT answered instead "
+        "(Σ of `steps.npz` `local_fallbacks`); 0 with `local: ipopt` and for centralised runs.",
+    ),
     KeyDoc("deadlocks", "integer", "–", "always", "Deadlock events detected (and acted on) during the run."),
     KeyDoc(
         "disturbance", "mapping or null", "–", "always",
@@ -295,6 +300,11 @@ ARRAYS: tuple[ArrayDoc, ...] = (
     ArrayDoc(
         "steps.npz", "deadline_stop", "(T,)", "bool", "–", "always",
         "Whether ADMM stopped iterating in each step because the next iteration would overrun `solver.deadline`.",
+    ),
+    ArrayDoc(
+        "steps.npz", "local_fallbacks", "(T,)", "int64", "–", "always",
+        "Local solves of each step (ADMM iterations and safety passes) that the QP local step failed and "
+        "IPOPT answered instead; 0 with `solver.local: ipopt` and for centralised runs.",
     ),
     ArrayDoc(
         "admm.npz", "primal", "(T, I)", "float64", "m", "admm",

@@ -5,7 +5,8 @@ A run folder holds ``summary.json``, ``trajectory.npz`` and ``scenario.yaml`` (t
 ``trajectory.npz`` adds ``disturbances`` when the run injected process noise),
 ``steps.npz`` (per-step solver records: ``failures`` = failed solve calls, ``fallback`` = which
 agents applied a safe fallback plan, ``repaired`` = ADMM repair pass, ``critical_path_s`` = the
-step's compute with one core per agent, ``deadline_stop`` = ADMM cut short by ``solver.deadline``)
+step's compute with one core per agent, ``deadline_stop`` = ADMM cut short by ``solver.deadline``,
+``local_fallbacks`` = local solves the QP local step handed to IPOPT)
 and, for ADMM, ``admm.npz`` (residual histories, ``copies``: how many neighbours each agent held
 per step, and ``planes``: how many separating planes it kept to). It is written under a
 temporary name beside the target and renamed into place when complete, so a reader never
@@ -55,6 +56,8 @@ class StepRecord:
     measured, read as ``wall_time`` (see :attr:`critical_path_s`)."""
     deadline_stop: bool = False
     """ADMM stopped iterating for ``solver.deadline`` (:attr:`PlanStep.deadline_stop`)."""
+    local_fallbacks: int = 0
+    """Local solves the QP local step failed and IPOPT answered (:attr:`PlanStep.local_fallbacks`)."""
 
     @property
     def critical_path_s(self) -> float:
@@ -78,6 +81,7 @@ class StepRecord:
             planes=None if plan.planes is None else np.asarray(plan.planes, int),
             critical_path=plan.critical_path,
             deadline_stop=plan.deadline_stop,
+            local_fallbacks=int(plan.local_fallbacks),
         )
 
 
@@ -126,6 +130,7 @@ class RunResult:
         )
         summary["fallback_steps"] = int(sum(r.fallback.any() for r in records))
         summary["fallback_agent_steps"] = int(sum(int(r.fallback.sum()) for r in records))
+        summary["local_fallbacks"] = int(sum(r.local_fallbacks for r in records))
         summary["disturbance"] = (
             scenario.disturbance.model_dump() if scenario.disturbance != type(scenario.disturbance)() else None
         )
@@ -300,6 +305,7 @@ def _write_contents(result: RunResult, folder: Path) -> None:
         repaired=np.array([r.repaired for r in records], bool),
         critical_path_s=np.array([r.critical_path_s for r in records], float),
         deadline_stop=np.array([r.deadline_stop for r in records], bool),
+        local_fallbacks=np.array([r.local_fallbacks for r in records], int),
     )
     if scn.solver.method == "admm":
         primal, dual, rho = result.residual_histories()

@@ -63,6 +63,7 @@ _TRAJECTORY_KEYS = ("t", "states", "inputs", "goals", "delta", "dt", "disturbanc
 _STEP_KEYS: Mapping[str, bool] = MappingProxyType({  # name -> True when it has one column per agent
     "step_time_s": False, "agent_time_s": True, "failures": False, "fallback": True,
     "max_slack": False, "repaired": False, "critical_path_s": False, "deadline_stop": False,
+    "local_fallbacks": False,
 })  # fmt: skip
 _ADMM_KEYS = ("primal", "dual", "rho", "iterations", "copies", "planes")
 
@@ -135,8 +136,8 @@ class RunData:
     steps : Mapping[str, np.ndarray]
         Per-step solver records of ``steps.npz`` (``step_time_s``, ``agent_time_s``,
         ``failures``, ``fallback``, ``max_slack``, ``repaired``, ``critical_path_s``,
-        ``deadline_stop``; older runs may lack the last two), each with T rows; empty when the
-        file is absent.
+        ``deadline_stop``, ``local_fallbacks``; older runs may lack the last three), each with T
+        rows; empty when the file is absent.
     bodies : np.ndarray or None
         (M, d) half-size of each agent's body per axis (> 0): ``trajectory.npz``'s ``bodies``,
         else the scenario's, else delta / 2 (the default body). Two agents collide when their

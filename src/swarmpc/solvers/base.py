@@ -45,6 +45,10 @@ class PlanStep:
     centralised: the whole solve). None: not measured, read as ``wall_time``."""
     deadline_stop: bool = False
     """ADMM stopped iterating because another iteration would have overrun ``solver.deadline``."""
+    local_fallbacks: int = 0
+    """Local solves of the step that the QP local step failed and IPOPT answered instead (ADMM
+    with ``solver.local: qp``: the sum of the step's ``LocalResult.local_fallbacks``); 0 on the
+    IPOPT local step and for a centralised solve."""
 
 
 class MPCSolver(Protocol):

@@ -91,6 +91,8 @@ class ADMMSolver:
         """What the next step starts from (None before the first step)."""
         self._clock = StepClock()
         """The current step's clock: every local step is asked through it (:meth:`_solve`)."""
+        self._local_fallbacks = 0
+        """The current step's local solves the QP path failed and IPOPT answered (:meth:`_solve`)."""
 
     def close(self) -> None:
         """Close the executor the solver made for itself (never one it was given)."""
@@ -159,6 +161,7 @@ class ADMMSolver:
         machine and its load.
         """
         self._clock = StepClock(self.config.deadline)
+        self._local_fallbacks = 0
         cfg, s = self.config, self.settings
         requests = StepRequests(s, cfg, self.bodies, states, goals, guess)
         graph = CouplingGraph.build(states, guess, goals, s, self.bodies, cfg)
@@ -211,8 +214,11 @@ class ADMMSolver:
         return Iterations(results, graph, z, penalty.rho, converged, residuals, agent_times, failures)
 
     def _solve(self, requests: list[LocalRequest]) -> list[LocalResult]:
-        """The agents' answers to ``requests``, timed on the current step's critical path."""
-        return list(self._clock.solve(self.executor, requests))
+        """The agents' answers to ``requests``, timed on the current step's critical path; the
+        answers' QP-to-IPOPT fallbacks count towards the step's (iterations and safety passes alike)."""
+        results = list(self._clock.solve(self.executor, requests))
+        self._local_fallbacks += sum(r.local_fallbacks for r in results)
+        return results
 
     def _plan_step(self, run: Iterations, safe: SafePlans, repaired: bool) -> PlanStep:
         """The step's record: the plans the safety passes left, and what the step cost."""
@@ -231,6 +237,7 @@ class ADMMSolver:
             repaired=repaired,
             critical_path=critical,
             deadline_stop=self._clock.stopped,
+            local_fallbacks=self._local_fallbacks,
             primal_residuals=run.residuals.primal,
             dual_residuals=run.residuals.dual,
             rho_history=run.residuals.rho,
