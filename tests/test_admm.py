@@ -214,7 +214,9 @@ def test_neighbours_replan_around_a_fallback_they_did_not_see():
     """Two agents head-on at speed, ADMM cut short so the repair runs; agent 0 fails in the repair
     (after agent 1 was repaired against its plan) and coasts straight on. Agent 1 must end up clear
     of that fallback, not of the plan agent 0 no longer flies."""
-    scn = builtin_scenario("circle", agents=2, radius=2.0).with_updates(**{"limits.accel": 1.0})
+    # the paper's weights: one ADMM iteration leaves this meeting without consensus
+    scn = builtin_scenario("circle", agents=2, radius=2.0).with_updates(
+        **{"limits.accel": 1.0, "weights.Q": 0.1, "weights.Qf": 1.0})
     s = OCPSettings.from_scenario(scn)
     states = np.array([[-0.6, 0.02, 0.6, 0.0], [0.6, -0.02, -0.6, 0.0]])
     goals = scn.goal_states()

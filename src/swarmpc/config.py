@@ -185,6 +185,10 @@ class _Frozen(BaseModel):
                 if problem is not None:
                     raise ValueError(problem)
         return data
+DEFAULT_Q = 0.2
+"""Default stage weight on the state (times identity), with R = 1 and ``Qf: lqr``."""
+
+
 class Weights(_Frozen):
     """Quadratic cost weights: scalars (times identity) or full matrices.
 
@@ -193,10 +197,16 @@ class Weights(_Frozen):
     wherever no constraint binds, whatever the horizon.
     """
 
-    Q: ScalarOrMatrix = 0.1
-    R: ScalarOrMatrix = 1.0
+    Q: ScalarOrMatrix = Field(
+        default=DEFAULT_Q,
+        description="Stage state weight: a scalar ≥ 0 (times identity) or a symmetric PSD 2·dim × 2·dim matrix. "
+        "The default (0.2 with R = 1 and `Qf: lqr`) brings a lone agent to within 5 cm of a 4.24 m move for good "
+        "in 9.5 s with 1.9 % overshoot (docs/tuning.md); the paper's 0.1 is slower (11.5 s).",
+    )
+    R: ScalarOrMatrix = Field(default=1.0, description="Input weight: a scalar > 0 (times identity) or a symmetric "
+                              "positive definite dim × dim matrix.")
     Qf: ScalarOrMatrix | Literal["lqr"] = Field(
-        default=1.0,
+        default="lqr",
         description="Terminal state weight: a scalar ≥ 0 (times identity), a symmetric PSD 2·dim × 2·dim matrix, "
         "or `lqr`: the solution P of the discrete algebraic Riccati equation of the agent's own double "
         "integrator (this `dt` and `discretization`) with Q and R, so the MPC is the infinite-horizon LQR "
