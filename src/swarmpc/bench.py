@@ -245,7 +245,7 @@ def plan_cases(
 ) -> list[BenchCase]:
     """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed).
     The random and spread families run seeds ``first_seed`` … ``first_seed + seeds - 1``, so a long
-    study can be split over machines or sessions without repeating a seed. Each ADMM case runs once
+    study can be split over machines or separate invocations without repeating a seed. Each ADMM case runs once
     per local step of ``locals_``, one right after the other (so that they meet the machine in the
     same state); the centralised reference runs once."""
     _check_locals(locals_)
@@ -668,7 +668,7 @@ def load_outcomes(path: Path) -> list[CaseOutcome]:
 
 
 def merge_reports(sources: Sequence[Path], out: Path) -> tuple[Path, Path]:
-    """One report from the runs of several ``bench.json`` files (e.g. seeds split over sessions
+    """One report from the runs of several ``bench.json`` files (e.g. seeds split over invocations
     with ``--first-seed``); the same case in two sources is an error, not a silent pick. Every
     source is read and checked before anything is written."""
     outcomes: list[CaseOutcome] = []
