@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import subprocess
 import sys
@@ -71,3 +73,26 @@ class ScriptedExecutor:
 
     def close(self):
         pass
+
+
+def cli_in_process(*args: str) -> tuple[object, str]:
+    """``swarmpc ARGS`` through the console entry point, in this process: the imports (and CasADi's
+    compiled functions) are shared between calls, so a short run costs a fraction of a second
+    instead of a fresh interpreter. Returns (exit status, stderr); an exception escaping the entry
+    point (what a user would see as a traceback) fails the test."""
+    from swarmpc.cli import main
+
+    stderr = io.StringIO()
+    argv = sys.argv
+    sys.argv = ["swarmpc", *args]
+    try:
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(stderr):
+            try:
+                main()
+            except SystemExit as done:
+                code = done.code
+            else:  # pragma: no cover - main() always exits
+                code = 0
+    finally:
+        sys.argv = argv
+    return code, stderr.getvalue()

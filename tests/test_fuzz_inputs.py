@@ -4,7 +4,6 @@ option, or the file), exit status 2, no traceback and no output folder."""
 from __future__ import annotations
 
 import contextlib
-import io
 import math
 import re
 import subprocess
@@ -19,8 +18,8 @@ import yaml
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from conftest import run_cli
-from swarmpc.cli import app, main
+from conftest import cli_in_process, run_cli
+from swarmpc.cli import app
 from swarmpc.config import MAX_MAGNITUDE, MAX_SEED, Scenario, ScenarioError, scenario_from_dict, scenario_to_yaml
 from swarmpc.scenarios import BUILTINS, builtin_parameters, builtin_scenario
 
@@ -83,27 +82,6 @@ def test_cli_never_shows_a_traceback(tmp_path, data):
 
 
 # ------------------------------------------------------------------ command-line arguments
-def run_in_process(*args: str) -> tuple[int, str]:
-    """``swarmpc ARGS`` through the console entry point, in this process: the imports (and CasADi's
-    compiled functions) are shared between calls, so a short run costs a fraction of a second
-    instead of a fresh interpreter. Returns (exit status, stderr); an exception escaping the entry
-    point (what a user would see as a traceback) fails the test."""
-    stderr = io.StringIO()
-    argv = sys.argv
-    sys.argv = ["swarmpc", *args]
-    try:
-        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(stderr):
-            try:
-                main()
-            except SystemExit as done:
-                code = done.code
-            else:  # pragma: no cover - main() always exits
-                code = 0
-    finally:
-        sys.argv = argv
-    return code, stderr.getvalue()
-
-
 RUN = typer.main.get_command(app).commands["run"]
 # where the agents run: starting process pools or Ray per example is too slow for a fuzz, and their
 # rules (--workers, --address only with some executors) are tested in tests/test_cli_executor.py
@@ -214,7 +192,7 @@ def test_run_arguments_run_or_fail_with_one_line_naming_the_option(command):
         args = [scenario, *(x for item in values.items() for x in item)]
         args += [x for option, value in FAST.items() if option not in values and takes(scenario, option)
                  for x in (option, value)]
-        code, stderr = run_in_process("run", *args, "--out", str(out), "--quiet")
+        code, stderr = cli_in_process("run", *args, "--out", str(out), "--quiet")
         assert code in (0, 2), (code, stderr)
         assert "Traceback" not in stderr
         bad = [option for option, value in values.items() if invalid(option, value) or not takes(scenario, option)]
@@ -248,7 +226,7 @@ def test_a_negative_seed_is_rejected_naming_seed(how, tmp_path):
         args = [str(path)]
     else:
         args = [how, "--seed", "-1", "--agents", "2"]
-    code, stderr = run_in_process("run", *args, "--max-steps", "1", "--out", str(out), "--quiet")
+    code, stderr = cli_in_process("run", *args, "--max-steps", "1", "--out", str(out), "--quiet")
     assert code == 2 and stderr.startswith(f"{PREFIX}seed: ") and stderr.count("\n") == 1, stderr
     assert not out.exists()
 

@@ -6,12 +6,9 @@ whoever creates an executor closes it."""
 from __future__ import annotations
 
 import ast
-import contextlib
 import dataclasses
-import io
 import json
 import multiprocessing
-import sys
 import typing
 from pathlib import Path
 from typing import Any
@@ -20,7 +17,7 @@ import numpy as np
 import pytest
 import yaml
 
-from swarmpc.cli import main
+from conftest import cli_in_process
 from swarmpc.config import (
     ADMMOptions,
     ExecutorConfig,
@@ -260,19 +257,8 @@ def test_every_new_key_is_in_the_generated_reference():
 # ------------------------------------------------------------------------------ refusals
 def run_in_process(*args: str) -> tuple[int, str]:
     """``swarmpc ARGS`` in this process: (exit status, stderr)."""
-    stderr, argv = io.StringIO(), sys.argv
-    sys.argv = ["swarmpc", *args]
-    try:
-        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(stderr):
-            try:
-                main()
-            except SystemExit as done:
-                code = done.code
-            else:  # pragma: no cover - main() always exits
-                code = 0
-    finally:
-        sys.argv = argv
-    return int(code or 0), stderr.getvalue()
+    code, stderr = cli_in_process(*args)
+    return int(code or 0), stderr
 
 
 BAD = {
