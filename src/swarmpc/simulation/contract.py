@@ -7,8 +7,8 @@ what it means. The reference page is generated from these tuples (:mod:`swarmpc.
 keys and arrays, with the documented shapes and dtypes: a key that is written but not documented
 here (or documented but no longer written) fails the tests instead of going stale silently.
 
-Shapes use T (closed-loop steps), M (agents), d (spatial dimension, 2 or 3) and I (the most ADMM
-iterations of any step); ``when`` is one of :data:`CONDITIONS`.
+Shapes use T (closed-loop steps), M (agents), d (spatial dimension, 2 or 3), I (the most ADMM
+iterations of any step) and fixed sizes written as numbers; ``when`` is one of :data:`CONDITIONS`.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ FILES: tuple[FileDoc, ...] = (
     FileDoc("summary.json", "always", "The run's metrics and settings (the keys below)."),
     FileDoc(
         "trajectory.npz", "always",
-        "The closed-loop trajectory: states, inputs, goals, Δ, bodies, dt (arrays below).",
+        "The closed-loop trajectory: states, inputs, goals, Δ, bodies, dt, poses and footprints (arrays below).",
     ),
     FileDoc("steps.npz", "always", "Per-step solver records: solve times, failures, fallbacks, slack."),
     FileDoc("admm.npz", "admm", "ADMM residual histories and the neighbours each agent held, per step."),
@@ -268,6 +268,17 @@ ARRAYS: tuple[ArrayDoc, ...] = (
     ),
     ArrayDoc("trajectory.npz", "dt", "()", "float64", "s", "always", "Sampling time."),
     ArrayDoc(
+        "trajectory.npz", "poses", "(T+1, M, 3)", "float64", "m, m, rad", "always",
+        "Pose [x, y, θ] of each agent's footprint centre in the plane at each time. A point agent's is its "
+        "position (in 3D its first two coordinates) with θ = 0; a car's is the centre of its rectangle and "
+        "its heading.",
+    ),
+    ArrayDoc(
+        "trajectory.npz", "footprints", "(M, 2)", "float64", "m", "always",
+        "Footprint [length, width] of each agent in the plane, a rectangle centred on its pose and turned by θ. "
+        "A point agent's is the box its body keeps clear on the x and y axes: 2·`bodies[i, :2]`.",
+    ),
+    ArrayDoc(
         "trajectory.npz", "disturbances", "(T, M, 2d)", "float64", "m, m/s", "noise",
         "Process noise added to the state after step k: `states[k+1] = f(states[k], inputs[k]) + disturbances[k]`.",
     ),
@@ -352,11 +363,12 @@ _SHAPE = re.compile(r"\(([^()]*)\)")
 
 
 def expected_shapes(shape: str, sizes: Mapping[str, int]) -> list[tuple[int, ...]]:
-    """The concrete shapes a documented ``shape`` (``"(T+1, M, 2d)"``, ``"() or (d,)"``) allows
-    for the sizes ``T``, ``M``, ``d`` and ``I`` of a run."""
+    """The concrete shapes a documented ``shape`` (``"(T+1, M, 2d)"``, ``"() or (d,)"``,
+    ``"(M, 2)"``) allows for the sizes ``T``, ``M``, ``d`` and ``I`` of a run; a number is a
+    fixed size."""
     values = {"T+1": sizes["T"] + 1, "2d": 2 * sizes["d"], **sizes}
     shapes = []
     for inner in _SHAPE.findall(shape):
         tokens = [token.strip() for token in inner.split(",") if token.strip()]
-        shapes.append(tuple(values[token] for token in tokens))
+        shapes.append(tuple(int(token) if token.isdigit() else values[token] for token in tokens))
     return shapes

@@ -2,7 +2,8 @@
 
 A run folder holds ``summary.json``, ``trajectory.npz`` and ``scenario.yaml`` (the contract of
 :mod:`swarmpc.simulation.contract`, published as ``docs/run-folder-reference.md``;
-``trajectory.npz`` adds ``disturbances`` when the run injected process noise),
+``trajectory.npz`` adds ``disturbances`` when the run injected process noise; its ``poses`` and
+``footprints`` place each agent's footprint in the plane, :func:`agent_poses`),
 ``steps.npz`` (per-step solver records: ``failures`` = failed solve calls, ``fallback`` = which
 agents applied a safe fallback plan, ``repaired`` = ADMM repair pass, ``critical_path_s`` = the
 step's compute with one core per agent, ``deadline_stop`` = ADMM cut short by ``solver.deadline``,
@@ -27,9 +28,11 @@ from typing import Any
 import numpy as np
 
 from swarmpc.config import Scenario, scenario_to_yaml
+from swarmpc.model.agent_model import AgentModel
 from swarmpc.simulation.metrics import summarize
 from swarmpc.simulation.outdir import OutputError, RunFolderTarget, write_marker
 from swarmpc.simulation.quality import quality_summary
+from swarmpc.simulation.rundata import point_footprints, point_poses
 from swarmpc.solvers.base import PlanStep
 
 
@@ -245,7 +248,7 @@ def expected_run_bytes(scn: Scenario) -> int:
     """An upper estimate of a run folder's size before compression: the arrays of a run that
     lasts ``stop.max_steps`` (trajectory, inputs, per-step and per-agent records)."""
     m, d, steps = scn.num_agents, scn.dim, scn.stop.max_steps
-    per_step = m * (2 * d + d + 2 * d) + 4 * m + 8
+    per_step = m * (2 * d + d + 2 * d + 3) + 4 * m + 8
     return 8 * (steps + 1) * per_step
 
 
@@ -273,6 +276,51 @@ def json_safe(value: Any) -> Any:
     return value
 
 
+def _per_agent(models: AgentModel | Sequence[AgentModel], agents: int) -> Sequence[AgentModel]:
+    """One model per agent: ``models`` itself when it is a sequence of ``agents`` models, else
+    the one model repeated."""
+    if isinstance(models, Sequence):
+        if len(models) != agents:
+            raise ValueError(f"expected {agents} agent models, got {len(models)}")
+        return models
+    return (models,) * agents
+
+
+def agent_poses(models: AgentModel | Sequence[AgentModel], states: np.ndarray) -> np.ndarray:
+    """(..., M, 3) pose [x, y, theta] of each agent's footprint centre in the plane.
+
+    ``states`` is (..., M, n); ``models`` is one model for every agent or one per agent. A model
+    with a ``pose(states) -> (..., 3)`` method (a car, whose footprint centre is not its
+    reference point) gives its own; any other agent is a point agent: its position's first two
+    coordinates with heading 0 (:func:`~swarmpc.simulation.rundata.point_poses`), in 3D too.
+    """
+    states = np.asarray(states, float)
+    per_agent = _per_agent(models, states.shape[-2])
+    poses = np.empty((*states.shape[:-1], 3))
+    for i, model in enumerate(per_agent):
+        own = getattr(model, "pose", None)
+        agent_states = states[..., i, :]
+        poses[..., i, :] = own(agent_states) if callable(own) else point_poses(model.position(agent_states))
+    return poses
+
+
+def agent_footprints(models: AgentModel | Sequence[AgentModel], bodies: np.ndarray) -> np.ndarray:
+    """(M, 2) footprint [length, width] of each agent in the plane.
+
+    ``bodies`` (M, d) are the body half-sizes per axis; ``models`` is one model for every agent or
+    one per agent. A model with a ``footprint`` (length, width) gives its rectangle; a point
+    agent's footprint is the box its body keeps clear on the x and y axes, 2 x its half-sizes
+    there (:func:`~swarmpc.simulation.rundata.point_footprints`).
+    """
+    bodies = np.asarray(bodies, float)
+    footprints = point_footprints(bodies)
+    for i, model in enumerate(_per_agent(models, bodies.shape[0])):
+        own = getattr(model, "footprint", None)
+        if own is not None:
+            footprints[i] = np.asarray(own, float).reshape(2)
+    return footprints
+
+
 def _write_contents(result: RunResult, folder: Path) -> None:
     scn = result.scenario
     (folder / "scenario.yaml").write_text(scenario_to_yaml(scn))
@@ -287,6 +335,8 @@ def _write_contents(result: RunResult, folder: Path) -> None:
         "delta": delta,
         "dt": np.asarray(scn.dt),
         "bodies": scn.bodies,
+        "poses": agent_poses(scn.agent_model(), result.states),
+        "footprints": agent_footprints(scn.agent_model(), scn.bodies),
     }
     if result.disturbances is not None:
         # states[k+1] = f(states[k], inputs[k]) + disturbances[k]

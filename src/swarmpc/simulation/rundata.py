@@ -39,6 +39,8 @@ __all__ = [
     "RunData",
     "RunDataError",
     "load_run",
+    "point_footprints",
+    "point_poses",
     "read_npz",
     "read_summary",
 ]
@@ -59,7 +61,7 @@ _MAX_MEMBERS = 256
 _MAX_HEADER_BYTES = 10_000
 _NUMERIC_KINDS = "biuf"  # bool, signed and unsigned integers, floats
 
-_TRAJECTORY_KEYS = ("t", "states", "inputs", "goals", "delta", "dt", "disturbances", "bodies")
+_TRAJECTORY_KEYS = ("t", "states", "inputs", "goals", "delta", "dt", "disturbances", "bodies", "poses", "footprints")
 _STEP_KEYS: Mapping[str, bool] = MappingProxyType({  # name -> True when it has one column per agent
     "step_time_s": False, "agent_time_s": True, "failures": False, "fallback": True,
     "max_slack": False, "repaired": False, "critical_path_s": False, "deadline_stop": False,
@@ -129,6 +131,13 @@ class RunData:
         ``require_scenario=False`` from a folder without ``scenario.yaml``.
     summary : dict
         ``summary.json`` (empty when the file is absent).
+    poses : np.ndarray
+        (T+1, M, 3) pose [x, y, theta] of each agent's footprint centre in the plane:
+        ``trajectory.npz``'s ``poses``, else (a folder written before they existed, when every
+        agent was a point agent) :func:`point_poses` of the positions.
+    footprints : np.ndarray
+        (M, 2) footprint [length, width] of each agent in the plane (> 0): ``trajectory.npz``'s
+        ``footprints``, else :func:`point_footprints` of :attr:`bodies`.
     admm : AdmmResiduals or None
         Records from ``admm.npz``; None when the run has none.
     disturbances : np.ndarray or None
@@ -153,6 +162,8 @@ class RunData:
     dt: float
     scenario: Scenario | None
     summary: dict[str, Any]
+    poses: np.ndarray
+    footprints: np.ndarray
     admm: AdmmResiduals | None = None
     disturbances: np.ndarray | None = None
     steps: Mapping[str, np.ndarray] = field(default_factory=lambda: MappingProxyType({}))
@@ -202,6 +213,21 @@ class RunData:
         if isinstance(named, str) and named:
             return named
         return self.scenario.name if self.scenario is not None else self.run_dir.name
+
+
+def point_poses(positions: np.ndarray) -> np.ndarray:
+    """(..., 3) poses [x, y, 0] of point agents at ``positions`` (..., d): a point agent's
+    footprint is centred on its position and never turns (in 3D, its shadow on the x-y plane)."""
+    positions = np.asarray(positions, float)
+    poses = np.zeros((*positions.shape[:-1], 3))
+    poses[..., :2] = positions[..., :2]
+    return poses
+
+
+def point_footprints(bodies: np.ndarray) -> np.ndarray:
+    """(M, 2) footprints [length, width] of point agents with body half-sizes ``bodies`` (M, d):
+    the box each body keeps clear on the x and y axes, twice its half-sizes there."""
+    return 2.0 * np.asarray(bodies, float)[:, :2]
 
 
 # ------------------------------------------------------------------------------------ reading
@@ -440,6 +466,8 @@ def _check_trajectory(arrays: dict[str, np.ndarray], path: Path, scenario: Scena
     disturbances = _optional(arrays, "disturbances", path, (steps, agents, 2 * dim))
     goals = _goals(arrays, path, scenario, agents, dim)
     delta = _delta(arrays, path, scenario, dim)
+    bodies = _bodies(arrays, path, scenario, delta, agents)
+    poses = _optional(arrays, "poses", path, (steps + 1, agents, 3))
     return {
         "states": _frozen(states),
         "dt": dt,
@@ -448,7 +476,9 @@ def _check_trajectory(arrays: dict[str, np.ndarray], path: Path, scenario: Scena
         "goals": _frozen(goals),
         "delta": _frozen(delta),
         "disturbances": None if disturbances is None else _frozen(disturbances),
-        "bodies": _frozen(_bodies(arrays, path, scenario, delta, agents)),
+        "bodies": _frozen(bodies),
+        "poses": _frozen(point_poses(states[:, :, :dim]) if poses is None else poses),
+        "footprints": _frozen(_footprints(arrays, path, bodies)),
     }
 
 
@@ -540,6 +570,19 @@ def _bodies(
     if not np.all(np.isfinite(bodies) & (bodies > 0)):
         raise RunDataError(f"{path}: 'bodies' must be finite and > 0")
     return bodies
+
+
+def _footprints(arrays: dict[str, np.ndarray], path: Path, bodies: np.ndarray) -> np.ndarray:
+    """(M, 2) footprints: the trajectory's ``footprints`` (finite, > 0), else the point agents'
+    of ``bodies`` (a folder written before footprints existed)."""
+    if "footprints" not in arrays:
+        return point_footprints(bodies)
+    footprints = np.asarray(arrays["footprints"], float)
+    if footprints.shape != (bodies.shape[0], 2):
+        raise RunDataError(f"{path}: 'footprints' must have shape {(bodies.shape[0], 2)}, got {footprints.shape}")
+    if not np.all(np.isfinite(footprints) & (footprints > 0)):
+        raise RunDataError(f"{path}: 'footprints' must be finite and > 0")
+    return footprints
 
 
 def _read_steps(path: Path, steps: int, agents: int) -> Mapping[str, np.ndarray]:
