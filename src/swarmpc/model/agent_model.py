@@ -7,7 +7,8 @@ agent is then one class implementing the protocol plus a :func:`register_model` 
 else assumes a state layout.
 
 The double integrator (:class:`swarmpc.model.dynamics.DoubleIntegrator`, state [p, v], input a)
-is registered as ``double_integrator``.
+is registered as ``double_integrator``, the kinematic bicycle (:class:`swarmpc.model.car.KinematicCar`,
+state [x, y, theta, v], input [a, delta], planar only) as ``car``.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from swarmpc.model.car import KinematicCar
 from swarmpc.model.dynamics import DoubleIntegrator
 
 __all__ = [
@@ -136,7 +138,7 @@ class AgentModel(Protocol):
 ModelFactory = Callable[..., AgentModel]
 """Builds a model as ``factory(dim, dt, discretization, **params)``."""
 
-_REGISTRY: dict[str, ModelFactory] = {"double_integrator": DoubleIntegrator}
+_REGISTRY: dict[str, ModelFactory] = {"double_integrator": DoubleIntegrator, "car": KinematicCar}
 """The registered models by name. Module-level on purpose: registration is the plug-in point a
 new kind of agent uses, at import time (and a test, inside :func:`registered_model`)."""
 
