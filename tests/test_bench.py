@@ -183,6 +183,10 @@ def test_bench_command_writes_its_table(tmp_path):
     (["--sizes", "4,x"], "--sizes"),
     (["--sizes", "0"], "--sizes"),
     (["--seeds", "0"], "--seeds"),
+    (["--set", "weights"], "--set"),
+    (["--set", "weights.Qq=1"], "--set"),
+    (["--set", "weights.Q=-1"], "--set"),
+    (["--set", "nosuch.key=1"], "--set"),
 ])
 def test_bench_command_rejects_bad_options(tmp_path, args, field):
     from conftest import run_cli
@@ -321,3 +325,39 @@ def test_a_report_from_before_local_steps_merges_as_ipopt(tmp_path):
     _, merged = merge_reports([tmp_path / "old", tmp_path / "new"], tmp_path / "all")  # not the same case
     rows = json.loads(merged.read_text())["rows"]
     assert [(r["local"], r["local_fallbacks"]) for r in rows] == [("ipopt", None), ("qp", 2)]
+
+
+# --- scenario settings on every case (--set) -------------------------------------------------------
+def test_settings_reach_every_case_and_survive_the_report(tmp_path):
+    settings = (("weights.Q", 1.0), ("weights.R", 0.1), ("deadlock.keep_right_deg", 15.0))
+    cases = plan_cases(["random", "circle"], [4], 1, "serial", None, 60.0, 4, locals_=("qp", "ipopt"),
+                       settings=settings)
+    assert {c.method for c in cases} == {"admm", "centralized"}
+    for case in cases:
+        scn = case.scenario()
+        assert np.allclose(scn.matrix("Q", scn.agent_model()), np.eye(2 * scn.dim))
+        assert np.allclose(scn.matrix("R", scn.agent_model()), 0.1 * np.eye(scn.dim))
+        assert scn.deadlock.keep_right_deg == 15.0
+        assert scn.solver.method == case.method  # the benchmark's own keys still win
+    made = outcome("random", 4, 0, "admm", 1.0)
+    written = CaseOutcome(**{**made.__dict__, "case": cases[0]})
+    write_report(tmp_path / "r", [written], "m", 1.0)
+    (loaded,) = load_outcomes(tmp_path / "r")
+    assert loaded.case.settings == settings and loaded == written
+
+
+def test_run_bench_states_its_settings_and_refuses_bad_ones_before_running(tmp_path):
+    ran: list[BenchCase] = []
+
+    def stand_in(case: BenchCase, runs_dir: object) -> CaseOutcome:
+        ran.append(case)
+        return CaseOutcome(**{**outcome(case.family, case.agents, case.seed, case.method, 1.0).__dict__, "case": case})
+
+    markdown, _ = run_bench(tmp_path / "ok", families=["random"], sizes=[4], seeds=1, jobs=1, central_max_agents=0,
+                            case_runner=stand_in, settings={"weights.Q": 1.0})
+    assert "every scenario with weights.Q: 1.0" in markdown.read_text()
+    assert [c.settings for c in ran] == [(("weights.Q", 1.0),)]
+    with pytest.raises(ValueError, match=r"^set: .*weights"):
+        run_bench(tmp_path / "bad", families=["random"], sizes=[4], seeds=1, jobs=1, central_max_agents=0,
+                  case_runner=stand_in, settings={"weights.Q": "heavy"})
+    assert len(ran) == 1 and not (tmp_path / "bad").exists()

@@ -75,6 +75,9 @@ class BenchCase:
     local: str = DEFAULT_LOCAL
     """``solver.local`` of an ADMM case: the agents' local step, ``ipopt`` or ``qp`` (a centralised
     case has none and keeps the default)."""
+    settings: tuple[tuple[str, Any], ...] = ()
+    """Scenario keys (dotted, ``weights.Q``) and values set on the case's scenario before the
+    benchmark's own (``--set``): a tuning compared on the same families."""
 
     def scenario(self) -> Scenario:
         """The case's scenario (built-in generators; see the module docstring)."""
@@ -83,7 +86,7 @@ class BenchCase:
         else:
             scn = builtin_scenario("circle", agents=self.agents, dim=2 if self.family == "circle" else 3)
             scn = scn.with_updates(**{"limits.accel": 1.0, "stop.goal_tolerance": 0.1, "seed": self.seed})
-        updates: dict[str, Any] = {"solver.method": self.method}
+        updates: dict[str, Any] = {**dict(self.settings), "solver.method": self.method}
         if self.max_steps is not None:
             updates["stop.max_steps"] = self.max_steps
         if self.plane_margin is not None and self.method == "admm":
@@ -242,21 +245,23 @@ def plan_cases(
     families: Iterable[str], sizes: Iterable[int], seeds: int, executor: str, workers: int | None,
     budget_s: float, central_max_agents: int, max_steps: int | None = None, first_seed: int = 0,
     plane_margin: float | None = None, locals_: Sequence[str] = (DEFAULT_LOCAL,),
+    settings: tuple[tuple[str, Any], ...] = (),
 ) -> list[BenchCase]:
     """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed).
     The random and spread families run seeds ``first_seed`` … ``first_seed + seeds - 1``, so a long
     study can be split over machines or separate invocations without repeating a seed. Each ADMM case runs once
     per local step of ``locals_``, one right after the other (so that they meet the machine in the
-    same state); the centralised reference runs once."""
+    same state); the centralised reference runs once. ``settings`` are set on every case's scenario."""
     _check_locals(locals_)
     cases: list[BenchCase] = []
     for family in families:
         for m in sizes:
             for seed in (range(first_seed, first_seed + seeds) if family in SEEDED_FAMILIES else range(1)):
                 cases.extend(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps, plane_margin,
-                                       local) for local in locals_)
+                                       local, settings) for local in locals_)
                 if m <= central_max_agents:
-                    cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps))
+                    cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps,
+                                           settings=settings))
     return cases
 
 
@@ -457,6 +462,7 @@ def run_bench(
     plane_margin: float | None = None,
     case_runner: Callable[[BenchCase, Path | None], CaseOutcome] = run_case,
     locals_: Sequence[str] = (DEFAULT_LOCAL,),
+    settings: Mapping[str, Any] | None = None,
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
 
@@ -470,6 +476,8 @@ def run_bench(
     agents' local steps (``solver.local``) to compare: every ADMM case runs once with each, the
     runs of a case one after the other, and the table has a row per local step. ``case_runner``
     runs one case (a module-level function when ``jobs`` > 1, so that worker processes can load it).
+    ``settings`` (dotted scenario keys to values, ``{"weights.Q": 1.0}``) are set on every case's
+    scenario; ValueError (``set: ...``) before anything runs when a case's scenario rejects them.
     """
     unknown = sorted(set(families) - set(FAMILIES))
     if unknown:
@@ -478,9 +486,12 @@ def run_bench(
     seeds = seeds or (1 if quick else 5)
     cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
                        min(central_max_agents, 4) if quick else central_max_agents, max_steps, first_seed,
-                       plane_margin, tuple(locals_))
+                       plane_margin, tuple(locals_), tuple((settings or {}).items()))
+    _check_settings(cases)
     jobs = jobs or (1 if executor != "serial" else available_cores())
     machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
+    if settings:
+        machine += "; every scenario with " + ", ".join(f"{key}: {value}" for key, value in settings.items())
     outcomes: list[CaseOutcome] = []
     failures: list[str] = []
     started = time.perf_counter()
@@ -500,6 +511,15 @@ def run_bench(
         raise RuntimeError(f"{len(failures)} of {len(cases)} bench cases failed (the report holds the others), "
                            f"first {failures[0]}")
     return paths
+
+
+def _check_settings(cases: Sequence[BenchCase]) -> None:
+    """ValueError (``set: ...``, one line) when a case's scenario rejects the benchmark's settings."""
+    for case in {(c.family, c.method): c for c in cases if c.settings}.values():
+        try:
+            case.scenario()
+        except (ValueError, KeyError, TypeError) as err:
+            raise ValueError(f"set: {str(err).splitlines()[0] if str(err) else type(err).__name__}") from None
 
 
 def _progress(case: BenchCase, result: Finished) -> str:
@@ -598,6 +618,8 @@ _CASE_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyType
     "budget_s": (_is_finite, "a finite number"), "max_steps": (lambda v: v is None or _is_count(v), "a count or null"),
     "plane_margin": (_is_finite_or_none, "a number or null"),
     "local": (lambda v: v in LOCAL_STEPS, f"one of {', '.join(LOCAL_STEPS)}"),
+    "settings": (lambda v: isinstance(v, list) and all(
+        isinstance(p, list) and len(p) == 2 and isinstance(p[0], str) for p in v), "a list of [key, value] pairs"),
 })  # fmt: skip
 
 
@@ -634,6 +656,7 @@ def _outcome_from_json(run: Any, where: str) -> CaseOutcome:
     values = _checked_fields(run, _OUTCOME_CHECKS, _required_fields(CaseOutcome), where)
     case = _checked_fields(run["case"], _CASE_CHECKS, _required_fields(BenchCase), f"{where}.case")
     values["unreached"] = tuple(values.get("unreached", ()))
+    case["settings"] = tuple((key, value) for key, value in case.get("settings", ()))
     return CaseOutcome(case=BenchCase(**case), **values)
 
 

@@ -19,6 +19,7 @@ from typing import Annotated, Any, NoReturn
 
 import numpy as np
 import typer
+import yaml
 
 from swarmpc._interrupts import INTERRUPTED, caused_by_interrupt
 from swarmpc.config import MAX_AGENTS, Scenario, ScenarioError, executor_problem, load_scenario
@@ -622,6 +623,9 @@ def bench(
     save_runs: Annotated[bool, typer.Option("--save-runs", help="keep every run's folder under OUT/runs")] = False,
     merge: Annotated[list[Path] | None, typer.Option(
         help="run nothing: one report from these earlier bench.json files or folders (repeatable)")] = None,
+    settings: Annotated[list[str] | None, typer.Option(
+        "--set", help="KEY=VALUE: a scenario setting of every case (repeatable; dotted key, YAML value), "
+        "e.g. --set weights.Q=1 --set weights.R=0.1")] = None,
 ) -> None:
     """The scaling benchmark: swarms of growing size; writes OUT/bench.md and OUT/bench.json
     (rewritten after every finished run, so a long study interrupted keeps what it measured)."""
@@ -650,6 +654,7 @@ def bench(
     if not local_list or set(local_list) - set(LOCAL_STEPS) or len(set(local_list)) != len(local_list):
         fail(f"--local: expected comma-separated local steps, each once, from {', '.join(LOCAL_STEPS)}; "
              f"got {local!r}")
+    overrides = _bench_settings(settings or [])
     try:
         with claimed_out_folder(out, "bench"):
             markdown, _ = run_bench(
@@ -657,7 +662,7 @@ def bench(
                 sizes=size_list, seeds=seeds, jobs=jobs, executor=executor.value, workers=workers,
                 budget_s=budget, central_max_agents=central_max_agents, max_steps=max_steps,
                 log=lambda line: typer.echo(line, err=True), first_seed=first_seed, save_runs=save_runs,
-                plane_margin=plane_margin, locals_=local_list,
+                plane_margin=plane_margin, locals_=local_list, settings=overrides,
             )
     except typer.Exit:  # a RuntimeError too: the command's own one-line refusal
         raise
@@ -666,6 +671,20 @@ def bench(
     except ValueError as err:
         fail(f"--{str(err).splitlines()[0]}")
     typer.echo(str(markdown))
+
+
+def _bench_settings(items: list[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` options as {dotted key: YAML value}; one line and exit 2 when malformed."""
+    settings: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip() or any(not part for part in key.strip().split(".")):
+            fail(f"--set: expected KEY=VALUE with a dotted scenario key, got {item!r}")
+        try:
+            settings[key.strip()] = yaml.safe_load(text)
+        except yaml.YAMLError:
+            fail(f"--set: {key.strip()}: the value {text!r} is not YAML")
+    return settings
 
 
 def _print_version(value: bool) -> None:
