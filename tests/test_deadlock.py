@@ -352,3 +352,27 @@ def test_a_swap_under_a_low_ceiling_is_untied_by_a_side_step(tmp_path):
     lifting = scn.with_updates(**{"deadlock.side_steps": False})
     summary = load_folder(write_run(simulate(lifting), tmp_path / "lift"))[0]
     assert not summary["all_reached"] and summary["deadlocks"] >= 4
+
+
+def test_keep_right_turns_blocked_goals_right_from_the_first_step_and_spares_agents_near_their_goal():
+    goals = np.array([[3.0, 0.0, 0, 0], [-3.0, 0.0, 0, 0], [0.5, 5.0, 0, 0]])
+    # agents 0 and 1 head at each other, moving (not stalled); agent 2 is 0.5 m from its goal
+    states = np.array([[-0.4, 0.0, 0.5, 0.0], [0.4, 0.0, -0.5, 0.0], [0.0, 5.0, 0.0, 0.0]])
+    policy = DeadlockPolicy(keep_right_deg=30.0)
+    out = DeadlockResolver(3, 2, policy).goals(0, states, goals)
+    for i in (0, 1):
+        offset, true = out[i, :2] - states[i, :2], goals[i, :2] - states[i, :2]
+        assert np.linalg.norm(offset) == pytest.approx(np.linalg.norm(true))
+        # turned clockwise by 30 degrees: the cross product true x offset is negative
+        cross = true[0] * offset[1] - true[1] * offset[0]
+        cos = offset @ true / np.linalg.norm(true) ** 2
+        assert cross < 0 and cos == pytest.approx(np.cos(np.radians(30.0)))
+        assert np.all(out[i, 2:] == 0.0)
+    assert np.array_equal(out[2], goals[2])
+    # off (the library default) and the same states: the true goals, and nobody detoured
+    plain = DeadlockResolver(3, 2).goals(0, states, goals)
+    assert np.array_equal(plain, goals)
+    # the same pair far apart is not blocked: true goals even with the rule on
+    apart = states.copy()
+    apart[:2, 0] = [-2.5, 2.5]
+    assert np.array_equal(DeadlockResolver(3, 2, policy).goals(0, apart, goals), goals)

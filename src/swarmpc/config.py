@@ -759,6 +759,12 @@ class DeadlockConfig(_Frozen):
         description="Angle [degrees] of the detour direction to the right (clockwise about z) of the goal "
         "direction.",
     )
+    keep_right_deg: float = Field(
+        default=0.0, ge=0, lt=90,
+        description="Anticipation: an agent more than `approach_radius` from its goal, with another agent in its "
+        "way, steers to its goal turned this many degrees to the right about itself from the first such step, "
+        "without waiting to stall, so agents meeting at a common point pass like a roundabout; 0: off.",
+    )
     approach_radius: float = Field(
         default=1.0, gt=0,
         description="Within this [m] of its goal an agent still closing in by `min_progress` per step is "

@@ -113,6 +113,12 @@ class DeadlockPolicy:
     side_steps: bool = True
     """When the vertical way out of a knot runs into a parked neighbour, step out sideways instead
     (the axis and side that keep farthest from the others)."""
+    keep_right_deg: float = 0.0
+    """Anticipation: an agent farther than ``approach_radius`` from its goal with another agent in
+    its way (``blocked``) steers, from the first such step and without waiting to stall, to its
+    goal turned this many degrees to the right about itself (same distance): all agents meeting
+    near a common point veer the same way and pass like a roundabout. 0: off (only stalled agents
+    are detoured)."""
     enabled: bool = True
     """False: no agent is ever detoured or lifted; every step's goals are the true ones."""
 
@@ -330,7 +336,20 @@ class DeadlockResolver:
             self._detour_left[i] = hold
             self._stalled[i] = 0
             self.events.append((step, int(i)))
+        self._keep_right(out, positions, to_goal, distance, blocked)
         for i in np.flatnonzero(self._detour_left > 0):
             out[i] = self._detour_goal[int(i)]
             self._detour_left[i] -= 1
         return out
+
+    def _keep_right(self, out: np.ndarray, positions: np.ndarray, to_goal: np.ndarray, distance: np.ndarray,
+                    blocked: np.ndarray) -> None:
+        """Turn the goals of blocked agents far from their goals ``keep_right_deg`` to the right
+        about the agent (in place; agents on a detour or waiting in a knot keep theirs)."""
+        p, model = self.policy, self.model
+        if p.keep_right_deg <= 0:
+            return
+        veer = blocked & (distance > p.approach_radius) & (self._detour_left == 0) & (self._waiting == 0)
+        for i in np.flatnonzero(veer):
+            turned = right_turn(to_goal[i], np.radians(p.keep_right_deg))
+            out[i] = model.state_at(positions[i] + turned)

@@ -1,0 +1,136 @@
+"""Knot study: the keep-right rule (``deadlock.keep_right_deg``) against the reactive detours alone.
+
+Antipodal swaps on a circle (2D) and a sphere (3D), M = 4, 8, 16, with and without an
+acceleration limit of 1 m/s², and random 3D swarms (M = 16, seeds 0-2), each flown with the rule
+off (today's reactive detours only) and with the rule at the angles given. Consensus ADMM with the
+QP local step (``solver.local: qp``), serial; the rule only changes the goals the MPC steers to, so
+every row stays collision-free by the OBCA constraints, which the collision counts recompute from
+the states. Writes ``benchmarks/results/knots.json``.
+
+    nice -n 10 .venv/bin/python benchmarks/knot_study.py --jobs 2             # the rows
+    .venv/bin/python benchmarks/knot_study.py --record     # the experiment in benchmarks/results/controller.json
+    .venv/bin/python benchmarks/lab_tables.py --write      # docs/lab/controller.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results" / "knots.json"
+RECORD = ROOT / "benchmarks" / "results" / "controller.json"
+SWAPS = tuple(f"{family}-{m}{limit}" for family in ("circle", "sphere") for m in (4, 8, 16) for limit in ("", "-a1"))
+CASES = (*SWAPS, "random-16-s0", "random-16-s1", "random-16-s2")
+ANGLES = (0.0, 20.0)
+
+
+def scenario(case: str, angle: float) -> Any:
+    """The scenario of a case name (family-M[-a1] or random-M-sSEED) with the rule at ``angle``."""
+    from swarmpc.scenarios import builtin_scenario
+
+    parts = case.split("-")
+    family, agents = parts[0], int(parts[1])
+    if family == "random":
+        base = builtin_scenario("random", agents=agents, dim=3, seed=int(parts[2][1:]))
+    else:
+        base = builtin_scenario("circle", agents=agents, dim=2 if family == "circle" else 3)
+        if parts[-1] == "a1":
+            base = base.with_updates(**{"limits.accel": 1.0})
+    return base.with_updates(**{"solver.local": "qp", "stop.max_steps": 400, "deadlock.keep_right_deg": angle})
+
+
+def separation(states: np.ndarray, dim: int, delta: float) -> float:
+    """Smallest inf-norm gap between two agents over the flown states, in units of Delta (below 1:
+    the boxes overlap), recomputed from the positions."""
+    positions = states[:, :, :dim]
+    gaps = np.max(np.abs(positions[:, :, None] - positions[:, None]), axis=3)
+    agents = positions.shape[1]
+    gaps[:, np.arange(agents), np.arange(agents)] = np.inf
+    return float(gaps.min() / delta)
+
+
+def measure(task: tuple[str, float]) -> dict[str, Any]:
+    from swarmpc.bench import lone_agent_times
+    from swarmpc.simulation.loop import simulate
+    from swarmpc.simulation.quality import interaction_ratio
+
+    case, angle = task
+    scn = scenario(case, angle)
+    start = time.perf_counter()
+    result = simulate(scn)
+    s = result.summary
+    return {
+        "case": case, "keep_right_deg": angle, "all_reached": s["all_reached"], "steps": s["steps"],
+        "makespan_s": s.get("makespan_s"), "separation": separation(result.states, scn.dim, scn.delta),
+        "deadlocks": s.get("deadlocks"), "interaction": interaction_ratio(s.get("makespan_s"), lone_agent_times(scn)),
+        "step_ms_median": s["step_time_ms"]["median"], "wall_s": time.perf_counter() - start,
+    }
+
+
+def _cells(r: dict[str, Any]) -> list[str]:
+    def f(x: Any, fmt: str) -> str:
+        return "–" if x is None else fmt.format(x)
+
+    return [r["case"], f(r["keep_right_deg"], "{:g}"), "yes" if r["all_reached"] else "no", str(r["steps"]),
+            f(r["makespan_s"], "{:.1f}"), f(r["interaction"], "{:.2f}"), f(r["separation"], "{:.2f}"),
+            f(r["deadlocks"], "{}")]
+
+
+WHAT = (
+    "Antipodal swaps, circle (2D) and sphere (3D) families of `swarmpc bench`, M = 4, 8, 16, without and with "
+    "`limits.accel: 1` (`-a1`), and random 3D swarms (M = 16, accel <= 1), each with the keep-right rule off "
+    "(0: the reactive detours of stalled agents only) and on. Default weights, consensus ADMM with the QP local "
+    "step, serial, `stop.max_steps` 400 (a row that does not reach is cut there). Separation: the smallest "
+    "inf-norm gap between two agents over the run in units of Δ, recomputed from the states (>= 1: no overlap). "
+    "Interaction: makespan over the latest lone-agent time to goal with the same controller."
+)
+
+
+def lab_record(rows: list[dict[str, Any]], note: str) -> dict[str, Any]:
+    """The knot experiment of the lab record (docs/lab/controller.md, via benchmarks/lab_tables.py)."""
+    order = {case: n for n, case in enumerate(CASES)}
+    rows = sorted(rows, key=lambda r: (order.get(r["case"], len(order)), r["keep_right_deg"]))
+    columns = ["case", "keep right deg", "all reached", "steps", "makespan s", "vs lone", "min sep/Δ", "deadlocks"]
+    return {
+        "id": "knot-rule", "title": "Knots and symmetric swaps: the keep-right rule", "status": "shipped",
+        "date": "2026-12-05", "commit": None,
+        "commands": ["nice -n 10 .venv/bin/python benchmarks/knot_study.py --jobs 2"],
+        "what": WHAT, "tables": [{"caption": None, "columns": columns, "rows": [_cells(r) for r in rows]}],
+        "note": note,
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--cases", nargs="*", default=list(CASES))
+    parser.add_argument("--angles", nargs="*", type=float, default=list(ANGLES))
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--record", default=None, metavar="NOTE",
+                        help="write the experiment (with this conclusion) into controller.json from the rows file")
+    args = parser.parse_args(argv)
+    if args.record is not None:
+        record = json.loads(RECORD.read_text())
+        experiment = lab_record(json.loads(args.out.read_text())["rows"], args.record)
+        record["experiments"] = [e for e in record["experiments"] if e["id"] != experiment["id"]] + [experiment]
+        RECORD.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n")
+        return 0
+    rows = []
+    with ProcessPoolExecutor(args.jobs) as pool:
+        for row in pool.map(measure, [(case, angle) for case in args.cases for angle in args.angles]):
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+            args.out.write_text(json.dumps({"rows": rows}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
