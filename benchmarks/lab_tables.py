@@ -35,6 +35,11 @@ output of a benchmark script, are not records)::
 
 Table cells are strings, exactly as printed (``"1.10"``, ``"+2.0%"``, ``"**8.7**"``), so the
 precision a measurement was reported with is kept.
+
+A few benchmark scripts write their raw output (not a record) in a form this script can read;
+``GENERATED`` names each such file, the record whose page shows it and the experiment it follows
+there, and the function that turns it into an experiment (its table rendered from the rows, its
+note from the numbers and from the file's optional ``"note"``, which a rerun of the script drops).
 """
 
 from __future__ import annotations
@@ -209,9 +214,88 @@ def render_index(records: list[tuple[Path, dict[str, Any]]]) -> str:
     return "\n".join(out) + "\n"
 
 
+def _cell(value: float, digits: int = 3) -> str:
+    return f"{value:.{digits}f}"
+
+
+def _variant(row: dict[str, Any]) -> str:
+    return row["variant"] + (f" ({row['threads']} threads)" if row["threads"] > 1 else "")
+
+
+def batched_qp_experiment(data: dict[str, Any]) -> dict[str, Any]:
+    """The experiment of ``benchmarks/batched_qp.py``'s output: one row per batch size and variant."""
+    shape, rows = data["shape"], data["rows"]
+    table = [
+        [
+            str(r["batch"]), r["variant"], "loop" if r["threads"] == 0 else str(r["threads"]),
+            _cell(r["median_ms"]), _cell(r["p95_ms"]), _cell(r["per_agent_median_ms"]),
+            f"{r['speedup_vs_one_by_one']:.2f}×", f"{r['max_distance_from_one_by_one']:.1e}",
+        ]
+        for r in rows
+    ]
+    largest = max(r["batch"] for r in rows)
+    at_largest = [r for r in rows if r["batch"] == largest]
+    per_agent = "; ".join(
+        f"{_variant(r)} {_cell(r['per_agent_median_ms'])} ms ({r['speedup_vs_one_by_one']:.2f}×)" for r in at_largest
+    )
+    load = ", ".join(f"{sample[0]:.2f}" for sample in data["load_average"])
+    what = (
+        f"`benchmarks/batched_qp.py` (data: `benchmarks/results/batched_qp.json`): the local QPs of "
+        f"{data['recorded_agents']} agents of one MPC step of {data['scenario']} that share a shape "
+        f"({shape['copies']} copies: {shape['variables']} variables, {shape['rows']} rows), at ADMM iteration "
+        f"{data['iteration']}, each with its converged certificates; larger batches are made of these with "
+        "targets moved by ~1 mm and certificate normals turned by ~1e-3. Per batch size B, each variant is set "
+        "up once, then updates and solves the whole batch once per round, warm-started, after every problem's "
+        f"consensus targets moved by ~1 mm; {data['repeats']} rounds, the variants taking turns within each. "
+        "Times are wall times around the whole update + solve of the batch, from Python. "
+        "*OSQP one by one* is the shipped way (one OSQP solver per agent); *block-diagonal* is one OSQP "
+        "problem holding the B problems; ProxQP dense runs over proxsuite's `BatchQP`, by "
+        "`solve_in_parallel` or by each QP's own `solve` in a Python loop; CasADi's `conic` (osqp plugin) is "
+        f"mapped over the batch by `Function.map`. Idle OpenMP threads: `OMP_WAIT_POLICY={data['omp_wait_policy']}`. "
+        f"Machine: {data['machine']}, {data['cores']} cores, 1-minute load average {load} (before, after): "
+        "the threaded variants shared the cores with other work."
+    )
+    note = f"Per agent at B = {largest}: {per_agent}."
+    if data.get("note"):
+        note += "\n\n" + data["note"].strip()
+    columns = [
+        "B", "variant", "threads", "median ms", "p95 ms", "per agent ms (median)", "vs one by one",
+        "max abs x difference from one by one",
+    ]
+    return {
+        "id": "batched-local-qps", "title": "Batched solving of same-shape local QPs",
+        "status": "measured, not the default", "date": data.get("date"), "commit": None,
+        "commands": [f"nice -n 10 {data['command']}"], "what": what,
+        "tables": [{"caption": None, "columns": columns, "rows": table}], "note": note,
+    }
+
+
+GENERATED = {
+    "batched_qp.json": ("admm", "local-solver-candidates", batched_qp_experiment),
+}
+"""Raw benchmark output file -> (record, the experiment it follows on that record's page, builder)."""
+
+
+def with_generated(records: list[tuple[Path, dict[str, Any]]], folder: Path) -> list[tuple[Path, dict[str, Any]]]:
+    """``records`` with the experiments of the ``GENERATED`` files present in ``folder`` inserted."""
+    out = []
+    for path, record in records:
+        experiments = list(record["experiments"])
+        for name, (target, after, build) in GENERATED.items():
+            if target != record["record"] or not (folder / name).exists():
+                continue
+            ids = [exp["id"] for exp in experiments]
+            at = ids.index(after) + 1 if after in ids else len(experiments)
+            experiments.insert(at, build(json.loads((folder / name).read_text())))
+        record = {**record, "experiments": experiments}
+        validate(record, path.name)
+        out.append((path, record))
+    return out
+
+
 def generate(folder: Path = RESULTS) -> dict[Path, str]:
     """Every lab page by its path: one per record, and the index."""
-    records = load_records(folder)
+    records = with_generated(load_records(folder), folder)
     pages = {LAB / "index.md": render_index(records)}
     for path, record in records:
         pages[LAB / f"{record['record']}.md"] = render_record(record, f"benchmarks/results/{path.name}")
