@@ -243,6 +243,13 @@ class KinematicCar:
         y_c = states[..., 1] + self.centre_offset * np.sin(theta)
         return np.stack([x_c, y_c, theta], axis=-1)
 
+    def casadi_pose(self, X: Any) -> Any:
+        """The CasADi poses (3, K) [x_c, y_c, theta] of the footprint's centre for the states
+        X (4, K): :meth:`pose` as an expression, for the footprint OBCA rows of an OCP."""
+        theta = X[2, :]
+        return ca.vertcat(X[0, :] + self.centre_offset * ca.cos(theta),
+                          X[1, :] + self.centre_offset * ca.sin(theta), theta)
+
     def step(self, state: np.ndarray, control: np.ndarray) -> np.ndarray:
         """Next state(s) (..., 4) from state(s) (..., 4) under input(s) (..., 2) (broadcast)."""
         state, control = np.asarray(state, float), np.asarray(control, float)
