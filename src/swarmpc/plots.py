@@ -6,9 +6,13 @@ runs, ``admm.npz``) through the package's one reader, :func:`swarmpc.simulation.
 figures: the trajectories with the agents' bodies and the obstacles (Fig. 3), the ADMM residuals
 per iteration (Fig. 4) and an animation.
 
-Each agent is drawn as its body: the box of half-size b_i around its position (``RunData.bodies``).
-Two drawn bodies overlap exactly when the run counts the pair as a collision (|p_i - p_j| < b_i +
-b_j on every axis), so a picture never shows an overlap the summary does not count, nor hides one.
+Each agent is drawn as its body. In a 2D run that is its footprint, the rectangle
+``RunData.footprints`` at ``RunData.poses`` (centre and heading): a point agent's is the box of
+half-size b_i around its position (``RunData.bodies``) at heading 0, a car's turns with it and also
+carries a heading tick, a segment from its centre to the middle of its front side, so that its
+front is visible. A 3D run draws the boxes of half-size b_i, projected. Two drawn point-agent
+bodies overlap exactly when the run counts the pair as a collision (|p_i - p_j| < b_i + b_j on
+every axis), so a picture never shows an overlap the summary does not count, nor hides one.
 
 Only the object-oriented matplotlib API is used (:class:`~matplotlib.figure.Figure` with an Agg
 canvas), never :mod:`matplotlib.pyplot`: no window opens, no backend is switched and no figure
@@ -38,6 +42,7 @@ from scipy.spatial import ConvexHull, QhullError
 from swarmpc import palette
 from swarmpc.config import Scenario
 from swarmpc.frames import even_indices, frame_indices
+from swarmpc.model.footprint import footprint_vertices
 from swarmpc.model.geometry import body_separation_ratio, count_body_collisions, polytope_vertices
 from swarmpc.simulation.rundata import AdmmResiduals as AdmmResiduals
 from swarmpc.simulation.rundata import MissingRunFileError as MissingRunFileError
@@ -61,6 +66,8 @@ GID_OBSTACLE = "obstacle"
 GID_TOLERANCE = "tolerance"
 GID_BODY = "body"
 """Body patches carry the gid ``body:<agent>:<step>`` (snapshots) or ``body:<agent>`` (animation)."""
+GID_HEADING = "heading"
+"""Heading ticks (lines, one per turning agent) carry the gid ``heading:<agent>``."""
 BODY_LABEL = "bodies (half-size b)"
 
 
@@ -143,6 +150,10 @@ def _view_limits(run: RunData) -> tuple[np.ndarray, np.ndarray]:
     reach = run.body_half_sizes.max(axis=0)
     lower = np.minimum(lower, np.minimum(pos.min(axis=0), goals.min(axis=0)) - reach)
     upper = np.maximum(upper, np.maximum(pos.max(axis=0), goals.max(axis=0)) + reach)
+    turning = _turning(run.poses[:, :, 2]) if run.dim == 2 else np.zeros(run.num_agents, bool)
+    if turning.any():  # a turned footprint reaches past its body's box
+        corners = footprint_vertices(run.poses[:, turning], run.footprints[turning]).reshape(-1, 2)
+        lower, upper = np.minimum(lower, corners.min(axis=0)), np.maximum(upper, corners.max(axis=0))
     pad = 0.04 * (upper - lower).max()
     return lower - pad, upper + pad
 
@@ -238,24 +249,68 @@ def _draw_static_planar(ax: Axes, run: RunData, axes: tuple[int, int], obstacles
     ax.grid(True, linewidth=0.4, alpha=0.4)
 
 
-def _box_patch(center: np.ndarray, half: np.ndarray, color: Any, alpha: float, **kwargs: Any) -> Rectangle:
-    return Rectangle(tuple(center - half), 2 * half[0], 2 * half[1], facecolor=color, edgecolor=color,
-                     alpha=alpha, linewidth=0.8, **kwargs)
+def _planar_bodies(run: RunData, axes: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre (T+1, M, 2), size (M, 2) and heading (T+1, M) [rad] of the bodies drawn on ``axes``.
+
+    A 2D run draws the footprints (``RunData.poses``, ``RunData.footprints``); a point agent's is
+    its body box at heading 0, so its drawing is the box of half-size b_i around its position. A 3D
+    view draws the bodies' boxes projected on ``axes``, never turned.
+    """
+    if run.dim == 2:
+        return run.poses[:, :, :2], run.footprints, run.poses[:, :, 2]
+    centers = run.positions[:, :, list(axes)]
+    return centers, 2.0 * run.body_half_sizes[:, list(axes)], np.zeros(centers.shape[:2])
+
+
+def _turning(headings: np.ndarray) -> np.ndarray:
+    """(M,) True for the agents whose heading (T+1, M) ever leaves 0: they get a heading tick
+    (a point agent never turns; a car that does shows which side is its front)."""
+    return np.any(headings != 0.0, axis=0)
+
+
+def _heading_tick(center: np.ndarray, size: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """(..., 2, 2) segments from the centres (..., 2) to the middles of the front sides of footprints
+    of sizes (..., 2) at headings (...)."""
+    front = center + (size[..., 0] / 2.0)[..., None] * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    return np.stack([center, front], axis=-2)
+
+
+def _body_patch(
+    center: np.ndarray, size: np.ndarray, heading: float, color: Any, alpha: float, **kwargs: Any
+) -> Rectangle:
+    """The rectangle of ``size`` (length along the heading, width) centred at ``center`` and
+    turned by ``heading`` [rad] about its centre (at heading 0, the plain axis-aligned box)."""
+    return Rectangle(tuple(center - size / 2.0), size[0], size[1], angle=math.degrees(heading),
+                     rotation_point="center", facecolor=color, edgecolor=color, alpha=alpha,
+                     linewidth=0.8, **kwargs)
+
+
+def _place_body(patch: Rectangle, center: np.ndarray, size: np.ndarray, heading: float) -> None:
+    """Move ``patch`` (of :func:`_body_patch`) to ``center`` and ``heading``."""
+    patch.set_xy(tuple(center - size / 2.0))
+    patch.set_angle(math.degrees(heading))
 
 
 def _draw_paths_planar(
     ax: Axes, run: RunData, axes: tuple[int, int], colors: list[Any], snapshots: int
 ) -> None:
-    """Paths, start circles, goal stars and snapshot bodies of every agent, projected on ``axes``."""
+    """Paths, start circles, goal stars and snapshot bodies (with the heading ticks of turning
+    agents) of every agent, projected on ``axes``."""
     pos = run.positions[:, :, list(axes)]
     goals = run.goals[:, list(axes)]
-    halves = run.body_half_sizes[:, list(axes)]
+    centers, sizes, headings = _planar_bodies(run, axes)
+    turning = _turning(headings)
     instants = even_indices(run.num_steps + 1, snapshots)
     alphas = np.linspace(0.10, 0.28, len(instants))
     for i, color in enumerate(colors):
         for k, alpha in zip(instants, alphas, strict=True):
-            ax.add_patch(_box_patch(pos[k, i], halves[i], color, float(alpha), zorder=2,
-                                    gid=f"{GID_BODY}:{i}:{int(k)}"))
+            ax.add_patch(_body_patch(centers[k, i], sizes[i], float(headings[k, i]), color, float(alpha),
+                                     zorder=2, gid=f"{GID_BODY}:{i}:{int(k)}"))
+        if turning[i]:
+            ticks = _heading_tick(centers[instants, i], sizes[i], headings[instants, i])
+            gaps = np.full((len(instants), 1, 2), np.nan)  # one line, a gap between the ticks
+            xy = np.concatenate([ticks, gaps], axis=1).reshape(-1, 2)
+            ax.plot(xy[:, 0], xy[:, 1], color=color, linewidth=1.2, zorder=3, gid=f"{GID_HEADING}:{i}")
         ax.plot(pos[:, i, 0], pos[:, i, 1], color=color, linewidth=1.6, zorder=3, label=f"agent {i}")
         ax.plot(*pos[0, i], "o", color=color, markeredgecolor="k", markersize=7, zorder=4)
         ax.plot(*goals[i], "*", color=color, markeredgecolor="k", markersize=13, zorder=4)
@@ -270,6 +325,8 @@ def _legend_handles(run: RunData, colors: list[Any], obstacles: bool) -> list[An
         Line2D([], [], marker="*", linestyle="", color="0.8", markeredgecolor="k", markersize=12, label="goal"),
         Patch(facecolor="0.6", edgecolor="0.6", alpha=0.3, label=f"{BODY_LABEL}, snapshots"),
     ]
+    if run.dim == 2 and _turning(run.poses[:, :, 2]).any():
+        handles.append(Line2D([], [], color="0.3", linewidth=1.2, label="heading (to the front)"))
     if obstacles:
         handles.append(Patch(facecolor=OBSTACLE_COLOR, edgecolor="0.3", label="obstacle"))
     if _scenario(run).workspace is not None:
@@ -474,12 +531,15 @@ def _planar_movers(
 ) -> Callable[[int, int], None]:
     """Create the moving artists of a 2D view; return ``update(k, first)`` (trail from ``first``)."""
     pos = run.positions[:, :, list(axes)]
-    halves = run.body_half_sizes[:, list(axes)]
+    centers, sizes, headings = _planar_bodies(run, axes)
     for i, color in enumerate(colors):
         ax.plot(*run.goals[i, list(axes)], "*", color=color, markeredgecolor="k", markersize=11, zorder=4)
-    boxes = [_box_patch(pos[0, i], halves[i], c, 0.3, zorder=2, gid=f"{GID_BODY}:{i}") for i, c in enumerate(colors)]
+    boxes = [_body_patch(centers[0, i], sizes[i], float(headings[0, i]), c, 0.3, zorder=2, gid=f"{GID_BODY}:{i}")
+             for i, c in enumerate(colors)]
     for box in boxes:
         ax.add_patch(box)
+    ticks = {i: ax.plot([], [], color=colors[i], linewidth=1.2, zorder=3, gid=f"{GID_HEADING}:{i}")[0]
+             for i in map(int, np.flatnonzero(_turning(headings)))}
     trails = [ax.plot([], [], color=c, linewidth=1.5, zorder=3)[0] for c in colors]
     dots = [ax.plot([], [], "o", color=c, markeredgecolor="k", markersize=5, zorder=5)[0] for c in colors]
     numbers = [ax.text(pos[0, i, 0], pos[0, i, 1], f" {i}", color=c, fontsize=8, fontweight="bold", zorder=6)
@@ -487,7 +547,9 @@ def _planar_movers(
 
     def update(k: int, first: int) -> None:
         for i in range(len(colors)):
-            boxes[i].set_xy(tuple(pos[k, i] - halves[i]))
+            _place_body(boxes[i], centers[k, i], sizes[i], float(headings[k, i]))
+            if i in ticks:
+                ticks[i].set_data(*_heading_tick(centers[k, i], sizes[i], headings[k, i]).T)
             trails[i].set_data(pos[first : k + 1, i, 0], pos[first : k + 1, i, 1])
             dots[i].set_data([pos[k, i, 0]], [pos[k, i, 1]])
             numbers[i].set_position(tuple(pos[k, i]))

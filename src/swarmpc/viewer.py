@@ -7,10 +7,13 @@ opens offline from a ``file://`` URL and can be attached to a report or an issue
 
 The page shows, in 2D and in 3D:
 
-* per agent: its moving position marker (trace name ``agent i``), its body, the box of
-  half-size b_i around it (drawn red while it overlaps another agent's body, i.e. exactly when
-  the pair is counted as a collision), its trail (the path so far), its whole path (faint),
-  start (circle) and goal (star in 2D, diamond in 3D) markers;
+* per agent: its moving position marker (trace name ``agent i``), its body (drawn red while it
+  overlaps another agent's body, i.e. exactly when the pair is counted as a collision): in 2D its
+  footprint, the rectangle ``RunData.footprints`` at ``RunData.poses`` (a point agent's is the box
+  of half-size b_i around it at heading 0; a turning agent's, a car's, also holds a heading tick
+  from its centre to the middle of its front side), in 3D the box of half-size b_i; its trail
+  (the path so far), its whole path (faint), start (circle) and goal (star in 2D, diamond in 3D)
+  markers;
 * the static obstacles (filled polygons in 2D, translucent hull meshes in 3D) and the
   workspace outline;
 * animation frames over time (at most about 200), play/pause buttons and a time slider in
@@ -49,6 +52,7 @@ from typing import TYPE_CHECKING, Any, SupportsFloat
 import numpy as np
 
 from swarmpc.frames import frame_indices
+from swarmpc.model.footprint import footprint_vertices
 from swarmpc.model.geometry import as_bodies, pair_deltas, polytope_vertices
 from swarmpc.palette import agent_colors
 from swarmpc.simulation.rundata import RunData
@@ -199,6 +203,23 @@ def _box_lines(lower: np.ndarray, upper: np.ndarray, digits: int = _DIGITS) -> l
     return [
         [None if n is None else _round(corners[n, axis], digits) for n in order] for axis in range(3)
     ]
+
+
+_OUTLINE = [2, 3, 0, 1, 2]
+"""The corners of :func:`~swarmpc.model.footprint.footprint_vertices` as a closed outline from the
+rear right one, counter-clockwise: at heading 0 the very loop :func:`_box_lines` draws."""
+
+
+def _footprint_lines(pose: np.ndarray, size: np.ndarray, tick: bool, digits: int = 3) -> list[list[float | None]]:
+    """Outline of the footprint of ``size`` (length, width) at ``pose`` (x, y, theta) and, with
+    ``tick``, after a gap, its heading tick: the segment from its centre to the middle of its front."""
+    corners = footprint_vertices(pose, size)[_OUTLINE]
+    coords: list[list[float | None]] = [_rlist(corners[:, 0], digits), _rlist(corners[:, 1], digits)]
+    if tick:
+        front = pose[:2] + size[0] / 2.0 * np.array([np.cos(pose[2]), np.sin(pose[2])])
+        for axis in range(2):
+            coords[axis] += [None, _round(pose[axis], digits), _round(front[axis], digits)]
+    return coords
 
 
 # ------------------------------------------------------------------------------------ helpers
@@ -355,9 +376,10 @@ def run_figure_dict(run: RunData, max_frames: int = MAX_FRAMES) -> dict[str, Any
     bodies = run.body_half_sizes
     closest = closest_approach(run.positions, run.t, bodies)
     frames_k = frame_indices(run.positions.shape[0], max_frames, keep=closest.step if closest else None)
-    canvas = _Canvas(run, run.positions, run.velocities, bodies, agent_colors(run.num_agents), frames_k)
+    turning = np.any(run.poses[:, :, 2] != 0.0, axis=0) if run.dim == 2 else np.zeros(run.num_agents, bool)
+    canvas = _Canvas(run, run.positions, run.velocities, bodies, agent_colors(run.num_agents), frames_k, turning)
     obstacles = run.scenario.obstacle_halfspaces() if run.scenario is not None else []
-    lo, hi = _view_box(run, bodies.max(axis=0), obstacles)
+    lo, hi = _view_box(run, bodies.max(axis=0), obstacles, turning)
 
     traces: list[Any] = []
     workspace = _workspace_trace(canvas)
@@ -390,6 +412,7 @@ class _Canvas:
     bodies: np.ndarray  # (M, d) half-sizes
     colors: list[str]  # one per agent
     frames_k: np.ndarray  # the time index of each animation frame
+    turning: np.ndarray  # (M,) True for a 2D agent whose heading ever leaves 0 (it gets a heading tick)
 
     @property
     def is3d(self) -> bool:
@@ -407,10 +430,10 @@ class _Canvas:
 
 
 def _view_box(
-    run: RunData, reach: np.ndarray, obstacles: list[tuple[np.ndarray, np.ndarray]]
+    run: RunData, reach: np.ndarray, obstacles: list[tuple[np.ndarray, np.ndarray]], turning: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fixed axis ranges: the workspace (or padded starts and goals), everything that moved and
-    every bounded obstacle, padded by 3 % of the largest side.
+    """Fixed axis ranges: the workspace (or padded starts and goals), everything that moved (the
+    ``turning`` agents' footprints whole) and every bounded obstacle, padded by 3 % of the largest side.
 
     Fixed ranges keep the view still while the animation plays; unbounded obstacles are clipped
     to the view instead of extending it.
@@ -426,6 +449,9 @@ def _view_box(
         hi = np.maximum(hi, finite.max(axis=0) + reach)
     lo = np.minimum(lo, run.goal_positions.min(axis=0) - reach)
     hi = np.maximum(hi, run.goal_positions.max(axis=0) + reach)
+    if turning.any():  # a turned footprint reaches past its body's box
+        corners = footprint_vertices(run.poses[:, turning], run.footprints[turning]).reshape(-1, 2)
+        lo, hi = np.minimum(lo, corners.min(axis=0)), np.maximum(hi, corners.max(axis=0))
     span = np.maximum(hi - lo, 1e-6)
     far_lo, far_hi = lo - 10 * span - 10, hi + 10 * span + 10
     for G, g in obstacles:  # bounded obstacles extend the view; unbounded ones are clipped
@@ -700,10 +726,15 @@ def _agent_trail(canvas: _Canvas, i: int, trail_k: np.ndarray, full: bool) -> di
 
 
 def _agent_box(canvas: _Canvas, i: int, k: int, colliding: bool, full: bool) -> dict[str, Any]:
-    """Agent ``i``'s body at time index ``k``: its box, red and bolder while it overlaps another's."""
+    """Agent ``i``'s body at time index ``k``, red and bolder while it overlaps another's: its
+    footprint in 2D (with its heading tick when it turns), its box in 3D."""
     p, half, is3d = canvas.positions[k, i], canvas.bodies[i], canvas.is3d
     edge = _CLOSEST_COLOR if colliding else canvas.colors[i]
-    box = canvas.scatter(**canvas.axes(_box_lines(p - half, p + half, 3)))
+    if is3d:
+        outline = _box_lines(p - half, p + half, 3)
+    else:
+        outline = _footprint_lines(canvas.run.poses[k, i], canvas.run.footprints[i], bool(canvas.turning[i]))
+    box = canvas.scatter(**canvas.axes(outline))
     box["line"] = dict(color=edge, width=(3 if colliding else 2) if is3d else (2 if colliding else 1))
     if not is3d:
         box["fillcolor"] = _rgba(edge, 0.22 if colliding else 0.12)
