@@ -33,6 +33,8 @@ unless set otherwise): spinning ones would slow whichever variant runs next.
         [--batches 1,2,4,8,16,32]
 
 Prints a markdown table; writes benchmarks/results/batched_qp.json.
+
+The solvers other than OSQP come with the ``bench`` extra: ``pip install -c constraints.txt -e ".[bench]"``.
 """
 
 from __future__ import annotations

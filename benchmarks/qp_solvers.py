@@ -28,6 +28,8 @@ too, since other work on this machine adds ~4 ms stalls), rounds, and plan and c
     .venv/bin/python benchmarks/qp_solvers.py [--steps 3] [--repeats 300] [--copies 0,2,5,10]
 
 Prints markdown tables; writes benchmarks/results/qp_solvers.json.
+
+The solvers other than OSQP come with the ``bench`` extra: ``pip install -c constraints.txt -e ".[bench]"``.
 """
 
 from __future__ import annotations
