@@ -26,7 +26,11 @@ Certificate loop (:class:`SequentialLocalQP`), a convex-restriction SCP:
    grows).
 
 If the first QP is infeasible (the guess's certificates demand a separation the dynamics cannot
-reach), the loop restarts from the certificates of the coasting and then the braking plan.
+reach), the loop restarts from the certificates of the coasting and then the braking plan. A
+repair call (copies pinned, hard pairs) that still fails is checked by :class:`SeparationProof`:
+when every position the agent can reach at some step within its input box lies closer than
+d_min to a held neighbour, no plan exists, and the call is reported :data:`PROVEN_INFEASIBLE`
+(under acceleration limits most failed repair calls are of this kind).
 
 The QP solver is OSQP through its own API: a sparse solver whose matrix values can be updated in
 place, which the certificate rounds need (an active-set solver such as DAQP only pays off while
@@ -79,12 +83,15 @@ from swarmpc.formulation.ocp import OCPSettings
 __all__ = [
     "LocalShape",
     "OSQPBackend",
+    "PROVEN_INFEASIBLE",
     "QPAnswer",
     "QPBackend",
     "QPLocalLadder",
     "QPLocalOptions",
     "LocalQPProblem",
+    "SeparationProof",
     "SequentialLocalQP",
+    "box_covered",
     "copy_deltas",
     "speed_polytope",
 ]
@@ -652,6 +659,84 @@ def local_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: OC
     return cost + s.kappa * float(sum(np.sum(v) for v in slacks))
 
 
+PROVEN_INFEASIBLE = "qp_proven_infeasible"
+"""Status of a call whose problem has no feasible point at all (:class:`SeparationProof`): no
+solver can answer it, so it is not handed to another one."""
+
+
+def box_covered(lower: np.ndarray, upper: np.ndarray, boxes_lower: np.ndarray, boxes_upper: np.ndarray,
+                max_cells: int = 4096) -> bool:
+    """Whether the closed box [lower, upper] (d,) lies inside the union of the closed boxes
+    [boxes_lower, boxes_upper] (B, d); False also when deciding would take more than ``max_cells``
+    cells. The box is cut into cells at every box face inside it: a cell lies in a box as soon as
+    its centre does (its faces are among the cuts), so testing the centres decides exactly."""
+    meets = np.all((boxes_lower <= upper) & (boxes_upper >= lower), axis=1)
+    boxes_lower, boxes_upper = boxes_lower[meets], boxes_upper[meets]
+    if np.any(np.all((boxes_lower <= lower) & (boxes_upper >= upper), axis=1)):
+        return True
+    if not len(boxes_lower):
+        return False
+    centres = []
+    for axis in range(len(lower)):
+        faces = np.concatenate([[lower[axis], upper[axis]], boxes_lower[:, axis], boxes_upper[:, axis]])
+        cuts = np.unique(np.clip(faces, lower[axis], upper[axis]))
+        centres.append(0.5 * (cuts[1:] + cuts[:-1]) if len(cuts) > 1 else cuts)
+    if np.prod([len(c) for c in centres]) > max_cells:
+        return False
+    points = np.stack(np.meshgrid(*centres, indexing="ij"), axis=-1).reshape(-1, len(lower))
+    inside = np.all((boxes_lower[None] <= points[:, None]) & (points[:, None] <= boxes_upper[None]), axis=2)
+    return bool(np.all(np.any(inside, axis=1)))
+
+
+class SeparationProof:
+    """A proof that a local problem with pinned copies (a repair pass) has no feasible point: at
+    some constrained step every position the agent can reach lies closer than d_min to a pinned
+    neighbour's body.
+
+    The positions reachable at step k within the input box form the affine image of that box
+    under the exact rollout; its bounding box (exact for a model whose axes do not couple, such
+    as the double integrator) holds them all. Around a copy c, every position in the boxes
+    c +- (Delta + (d_min - margin) e_i), i = 1..d, and c +- (Delta + (d_min - margin) / sqrt(d))
+    is at most d_min - margin from the copy's body, so a reachable box inside their union
+    (:func:`box_covered`) leaves no plan that keeps the separation, whatever the certificates or
+    the solver. Problems of the kind arise in repair passes where the neighbours' held plans
+    close in faster than the acceleration limit lets the agent get away. The other constraints
+    only shrink the feasible set, so leaving them out keeps the proof sound.
+    """
+
+    def __init__(self, s: OCPSettings, transition: np.ndarray, response: np.ndarray, margin: float) -> None:
+        self.settings, self.margin = s, margin
+        lower, upper = s.model.input_bounds(s.accel, s.speed)
+        self.bounded = s.accel is not None and bool(np.all(np.isfinite(lower)) and np.all(np.isfinite(upper)))
+        n = s.model.state_dim
+        rows = np.arange(n)[s.model.position_rows]
+        steps = np.arange(s.first_constrained_step, s.horizon + 1)
+        index = (steps[:, None] * n + rows[None]).ravel()  # (K * d,) rows of vec(X), step by step
+        self.transition = transition[index]
+        if self.bounded:
+            mid = np.tile(0.5 * (lower + upper), s.horizon)
+            half = np.tile(0.5 * (upper - lower), s.horizon)
+            self.drift = response[index] @ mid
+            self.spread = (np.abs(response[index]) @ half).reshape(len(steps), len(rows)).T  # (d, K)
+
+    def infeasible(self, x0: np.ndarray, pinned: np.ndarray, delta: np.ndarray) -> bool:
+        """True when the reachable positions of some constrained step lie inside the union of
+        the pinned copies' (n, d, K) forbidden boxes; ``delta`` (d, n) the pairs' Delta_ij."""
+        if not self.bounded or not len(pinned):
+            return False
+        d, K = self.spread.shape
+        centre = (self.transition @ np.asarray(x0, float) + self.drift).reshape(K, d).T
+        reach = self.settings.d_min - self.margin
+        widths = np.concatenate([np.eye(d) * reach, np.full((1, d), reach / np.sqrt(d))])  # (d+1, d)
+        half = (delta.T[:, None, :] + widths[None]).reshape(-1, d)  # (n (d+1), d)
+        for k in range(K):
+            copies = np.repeat(pinned[:, :, k], d + 1, axis=0)
+            if box_covered(centre[:, k] - self.spread[:, k], centre[:, k] + self.spread[:, k],
+                           copies - half, copies + half):
+                return True
+        return False
+
+
 @dataclass(frozen=True)
 class LoopRecord:
     """Diagnostics of one certificate loop: rounds, QP iterations, solver-reported and wall time."""
@@ -677,6 +762,9 @@ class SequentialLocalQP:
         self.qp = LocalQP(self.problem, backend or OSQPBackend(options))
         self.certify = Certifier(s)
         self.transition, self.response = rollout_matrices(s)
+        self.proof = SeparationProof(s, self.transition, self.response, options.margin) if (
+            shape.pinned and shape.pair_collision == "hard") else None
+        """Decides failed repair calls that no solver can answer (:data:`PROVEN_INFEASIBLE`)."""
         self.last_record: LoopRecord | None = None
         self.vector_size = self.problem.layout.size + shape.copies * 2 * s.dim * s.num_constrained + sum(
             len(g) for _, g in s.obstacles) * s.num_constrained
@@ -756,7 +844,9 @@ class SequentialLocalQP:
 
         If the first QP is infeasible (the guess's certificates ask for a separation the
         dynamics cannot reach, e.g. a guess that cuts through a pinned neighbour's plan), the
-        loop restarts once from the certificates of each fallback plan (coasting, braking)."""
+        loop restarts once from the certificates of each fallback plan (coasting, braking). A
+        hard repair call that still fails is reported :data:`PROVEN_INFEASIBLE` when
+        :class:`SeparationProof` shows that no plan can keep clear of the pinned copies."""
         began = time.perf_counter()
         delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
         x, lin = self._start(guess, delta, pinned)
@@ -769,10 +859,13 @@ class SequentialLocalQP:
             answer, x, lin, converged = self._loop(params, start, lin, None, pinned, slack_caps, delta, tally)
             if answer.solved:
                 break
+        status = f"qp_{answer.status.replace(' ', '_')}"
+        if not answer.solved and self.proof is not None and pinned is not None:
+            status = PROVEN_INFEASIBLE if self.proof.infeasible(params["x0"], pinned, delta) else status
         wall = time.perf_counter() - began
         self.last_record = LoopRecord(tally[0], tally[1], tally[2], wall, converged, tally[3])
         if not answer.solved:
-            return self._failed(x, answer, wall, tally[1])
+            return self._failed(x, status, wall, tally[1])
         return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged)
 
     def _loop(
@@ -824,10 +917,10 @@ class SequentialLocalQP:
                 change = max(change, float(np.max(np.abs(old_n - new_n) * near[:, None, :])))
         return change <= o.certificate_tol
 
-    def _failed(self, x: np.ndarray, answer: QPAnswer, wall: float, iterations: int) -> NLPSolution:
+    def _failed(self, x: np.ndarray, status: str, wall: float, iterations: int) -> NLPSolution:
         blocks = {"X": x[self.problem.layout.X], "U": x[self.problem.layout.U]}
         return NLPSolution(x=blocks, x_vec=np.zeros(0), lam_x=np.zeros(0), lam_g=np.zeros(self.problem.A.shape[0]),
-                           cost=np.inf, success=False, status=f"qp_{answer.status.replace(' ', '_')}",
+                           cost=np.inf, success=False, status=status,
                            iterations=iterations, solve_time=wall)
 
     def rebuild(self, state: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,7 @@ import numpy as np
 from swarmpc.formulation.nlp import CompiledNLP, NLPSolution
 from swarmpc.formulation.ocp import OCPSettings, build_local
 from swarmpc.solvers.admm.messages import KEPT_PLAN, FallbackSolution
-from swarmpc.solvers.qp_local import QPLocalLadder
+from swarmpc.solvers.qp_local import PROVEN_INFEASIBLE, QPLocalLadder
 
 
 class WarmStartable(Protocol):
@@ -135,7 +135,9 @@ class QPLocalSolverLadder:
     the same start (a solution vector unpacked into named blocks, its certificates included),
     cold: multipliers do not carry across solvers. That answer is returned as
     :class:`FallbackSolution`, its solution vector laid out for the QP path so that the agent's
-    next call starts the QP from it.
+    next call starts the QP from it. A failed call that the QP path proves to have no feasible
+    point (:data:`swarmpc.solvers.qp_local.PROVEN_INFEASIBLE`: a repair pass whose held plans
+    leave the agent nowhere to go) is returned as it is: IPOPT could only spend its time on it.
     """
 
     def __init__(self, qp: QPLocalLadder, ipopt: LocalSolverLadder) -> None:
@@ -146,9 +148,10 @@ class QPLocalSolverLadder:
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
         *, copies: int, planes: int = 0, duals: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> NLPSolution:
-        """The QP path's answer if it succeeds, else IPOPT's (:class:`FallbackSolution`)."""
+        """The QP path's answer if it succeeds or proves the problem infeasible, else IPOPT's
+        (:class:`FallbackSolution`)."""
         answer = self.qp.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals)
-        if answer.success:
+        if answer.success or answer.status == PROVEN_INFEASIBLE:
             return answer
         pinned = pins_copies(fixed)
         start = self.qp.guess_blocks(params, guess, copies=copies, planes=planes, pinned=pinned)
