@@ -26,10 +26,10 @@ def _check_swap(folder) -> dict:
 
 @pytest.mark.parametrize("agents", [2, 4, pytest.param(8, marks=pytest.mark.loop)])
 def test_circle_swap_unjams(agents, tmp_path):
-    # the paper's weights: the agents meet head-on fast enough to jam (with Qf: lqr they arrive
-    # slower and circle-4 does not jam at all)
+    # the paper's weights and the reactive rule alone: the agents meet head-on fast enough to jam
+    # (with Qf: lqr they arrive slower and circle-4 does not jam at all; keeping right, nobody jams)
     scn = builtin_scenario("circle", agents=agents).with_updates(
-        **{"solver.method": "centralized", "weights.Q": 0.1, "weights.Qf": 1.0})
+        **{"solver.method": "centralized", "weights.Q": 0.1, "weights.Qf": 1.0, "deadlock.keep_right_deg": 0.0})
     summary = _check_swap(write_run(simulate(scn), tmp_path / f"circle-{agents}"))
     # the head-on meeting does jam, and the summary says so
     assert summary["deadlocks"] >= 1
@@ -52,7 +52,7 @@ def test_circle_swap_unjams_with_admm(tmp_path):
 
 
 def test_detector_needs_slow_far_and_crowded_for_patience_steps():
-    resolver = DeadlockResolver(2, 2)
+    resolver = DeadlockResolver(2, 2, DeadlockPolicy(keep_right_deg=0.0))
     goals = np.array([[2.0, 0.0, 0, 0], [-2.0, 0.0, 0, 0]])
     jammed = np.array([[-0.2, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.0]])
     moving = jammed + np.array([0, 0, 0.5, 0])
@@ -369,9 +369,19 @@ def test_keep_right_turns_blocked_goals_right_from_the_first_step_and_spares_age
         assert cross < 0 and cos == pytest.approx(np.cos(np.radians(30.0)))
         assert np.all(out[i, 2:] == 0.0)
     assert np.array_equal(out[2], goals[2])
-    # off (the library default) and the same states: the true goals, and nobody detoured
-    plain = DeadlockResolver(3, 2).goals(0, states, goals)
+    # off and the same states: the true goals, and nobody detoured
+    plain = DeadlockResolver(3, 2, DeadlockPolicy(keep_right_deg=0.0)).goals(0, states, goals)
     assert np.array_equal(plain, goals)
+    # the default: on at 20 degrees in the plane, off in 3D
+    assert DeadlockResolver(3, 2).keep_right_deg == 20.0 and DeadlockResolver(3, 3).keep_right_deg == 0.0
+    turned = DeadlockResolver(3, 2).goals(0, states, goals)
+    offset, true = turned[0, :2] - states[0, :2], goals[0, :2] - states[0, :2]
+    assert offset @ true / np.linalg.norm(true) ** 2 == pytest.approx(np.cos(np.radians(20.0)))
+    # agent 1 settled at its goal in agent 0's way: agent 0 keeps its goal (and agent 1 its own)
+    settled = goals.copy()
+    settled[1, :2] = [0.4, 0.0]
+    out = DeadlockResolver(3, 2, policy).goals(0, states, settled)
+    assert np.array_equal(out[0], settled[0]) and np.array_equal(out[1], settled[1])
     # the same pair far apart is not blocked: true goals even with the rule on
     apart = states.copy()
     apart[:2, 0] = [-2.5, 2.5]

@@ -157,24 +157,31 @@ def test_a_bad_value_in_a_file_names_the_field(tmp_path):
 
 
 # ----------------------------------------------------------------------------------- behaviour
-def _head_on_pair():
-    """circle M = 2 (centralised): two agents swapping head-on, which meet and stop nose to nose;
-    the default rule detours them within the run (tests/test_deadlock.py)."""
+def _head_on_pair(keep_right: bool = False):
+    """circle M = 2 (centralised): two agents swapping head-on, which meet and stop nose to nose
+    unless they keep right; the reactive rule detours them within the run (tests/test_deadlock.py)."""
+    updates = {"solver.method": "centralized", "stop.max_steps": 300}
     return builtin_scenario("circle", agents=2).with_updates(
-        **{"solver.method": "centralized", "stop.max_steps": 300}
-    )
+        **updates, **({} if keep_right else {"deadlock.keep_right_deg": 0.0}))
 
 
-def test_the_default_rule_untangles_a_head_on_pair():
+def test_the_reactive_rule_untangles_a_head_on_pair():
     summary = simulate(_head_on_pair()).summary
     assert summary["all_reached"] and summary["collisions"] == 0
     assert summary["deadlocks"] >= 1 and summary["steps"] < 300
 
 
+def test_keeping_right_by_default_the_head_on_pair_passes_without_a_jam_and_sooner():
+    reactive = simulate(_head_on_pair()).summary
+    default = simulate(_head_on_pair(keep_right=True)).summary
+    assert default["all_reached"] and default["collisions"] == 0
+    assert default["deadlocks"] == 0 and default["steps"] < reactive["steps"]
+
+
 @pytest.mark.parametrize(
     "section",
     [{"enabled": False}, {"patience": 100_000, "lonely_patience": 100_000}],
-    ids=["disabled", "endless-patience"],
+    ids=["disabled", "endless-patience"],  # keep_right_deg: 0 in _head_on_pair
 )
 def test_without_the_rule_the_head_on_pair_stays_jammed(section):
     scn = _head_on_pair()

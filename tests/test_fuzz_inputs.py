@@ -114,6 +114,16 @@ def takes(scenario: str, option: str) -> bool:
     return (option not in GENERATOR_OPTIONS or scenario not in BUILTINS
             or option.removeprefix("--") in builtin_parameters(scenario))
 
+
+CAR_BUILTINS = {"intersection", "mixed"}
+CAR_REFUSALS = {("--method", "admm"), ("--plant", "mujoco")}
+"""What a swarm with car agents refuses: consensus ADMM and the MuJoCo plant do not take cars."""
+
+
+def refused(scenario: str, option: str, value: str) -> bool:
+    """Whether a valid value is refused with this scenario (the car built-ins' limits)."""
+    return scenario in CAR_BUILTINS and (option, value) in CAR_REFUSALS
+
 # text without digits: never a number, except the spellings of nan and inf
 letters = st.text(st.characters(categories=["L", "P", "Zs"], exclude_characters="\x00"), max_size=6)
 small_ints = st.integers(-3, 4).map(str)  # the run-size options stay small when valid
@@ -195,7 +205,8 @@ def test_run_arguments_run_or_fail_with_one_line_naming_the_option(command):
         code, stderr = cli_in_process("run", *args, "--out", str(out), "--quiet")
         assert code in (0, 2), (code, stderr)
         assert "Traceback" not in stderr
-        bad = [option for option, value in values.items() if invalid(option, value) or not takes(scenario, option)]
+        bad = [option for option, value in values.items()
+               if invalid(option, value) or not takes(scenario, option) or refused(scenario, option, value)]
         if scenario not in BUILTINS:
             bad.append("SCENARIO")
         if bad:

@@ -25,11 +25,12 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_serializer, model_validator
 from pydantic_core import PydanticSerializationError
 
 from swarmpc.model.agent_model import AgentModel, make_model
 from swarmpc.model.dynamics import lqr_terminal_weight, riccati_weights_problem
+from swarmpc.model.footprint import footprint_vertices, polygon_distance, polygon_vertices, rectangle_distance
 
 Number = float
 Matrix = list[list[float]]
@@ -352,11 +353,96 @@ class Obstacle(_Frozen):
         return np.asarray(self.polytope.G, float), np.asarray(self.polytope.g, float)
 
 
+CAR_DEFAULTS: typing.Mapping[str, float] = types.MappingProxyType({
+    "length": 0.7, "width": 0.45, "wheelbase": 0.5, "rear_overhang": 0.1, "max_steer_deg": 35.0,
+    "max_speed": 1.5, "max_reverse_speed": 0.5,
+})
+"""What a ``model: {type: car}`` section (or ``model: car``) takes for the car fields it leaves out."""
+
+
+class AgentModelSpec(_Frozen):
+    """An agent's dynamics model (``agents[].model``): the double integrator or a kinematic car.
+
+    ``model: car`` is short for ``model: {type: car}``. The car fields belong to ``car`` only:
+    under ``double_integrator`` they stay null, and a car takes each field it leaves out from
+    :data:`CAR_DEFAULTS`. A car's state is [x, y, theta, v] (the rear axle's centre, the heading,
+    the signed speed) and its input [a, delta] (:class:`swarmpc.model.car.KinematicCar`).
+    """
+
+    type: Literal["double_integrator", "car"] = Field(
+        default="double_integrator",
+        description="`double_integrator`: a point agent with an axis-aligned box body (`body`); `car`: a kinematic "
+        "bicycle with a rectangular footprint that turns with it (2D only, `solver.method: centralized` only: "
+        "ADMM does not take car agents yet). A car's `start` and `goal` are poses [x, y, heading_deg] or "
+        "[x, y, heading_deg, speed] of the rear axle's centre, the heading in degrees from +x "
+        "counter-clockwise; it needs a numeric `weights.Qf` (it has no linearisation for `lqr`).",
+    )
+    length: float | None = Field(default=None, gt=0, description="car only: footprint length [m] (default 0.7).")
+    width: float | None = Field(default=None, gt=0, description="car only: footprint width [m] (default 0.45).")
+    wheelbase: float | None = Field(
+        default=None, gt=0, description="car only: distance between the rear and the front axle [m] (default 0.5)."
+    )
+    rear_overhang: float | None = Field(
+        default=None, ge=0,
+        description="car only: distance from the rear bumper forward to the rear axle's centre, the point the "
+        "start, goal and workspace refer to [m], at most `length` (default 0.1).",
+    )
+    max_steer_deg: float | None = Field(
+        default=None, gt=0, lt=90, description="car only: largest steering angle [degrees] (default 35)."
+    )
+    max_speed: float | None = Field(
+        default=None, gt=0,
+        description="car only: forward speed the vehicle is built for [m/s] (default 1.5); the plans are held to "
+        "`limits.speed`.",
+    )
+    max_reverse_speed: float | None = Field(
+        default=None, ge=0, description="car only: reverse speed the vehicle is built for [m/s] (default 0.5)."
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthand_and_defaults(cls, data: Any) -> Any:
+        """``car`` / ``double_integrator`` as a bare name; a car's missing fields from :data:`CAR_DEFAULTS`."""
+        if isinstance(data, str):
+            data = {"type": data}
+        if isinstance(data, dict) and data.get("type") == "car":
+            return {**data, **{k: v for k, v in CAR_DEFAULTS.items() if data.get(k) is None}}
+        return data
+
+    @model_validator(mode="after")
+    def _car_fields_only_with_car(self) -> AgentModelSpec:
+        if self.type != "car":
+            for name in CAR_DEFAULTS:
+                if getattr(self, name) is not None:
+                    raise ValueError(f"{name}: only with type: car (got {self.type})")
+        elif self.rear_overhang is not None and self.length is not None and self.rear_overhang > self.length:
+            raise ValueError(f"rear_overhang: must be <= length ({self.length}), got {self.rear_overhang}")
+        return self
+
+    @property
+    def is_car(self) -> bool:
+        return self.type == "car"
+
+    def car_params(self) -> dict[str, float]:
+        """The keyword arguments of :class:`swarmpc.model.car.KinematicCar` (steering in radians)."""
+        return {"length": float(self.length or 0), "width": float(self.width or 0),
+                "wheelbase": float(self.wheelbase or 0), "rear_overhang": float(self.rear_overhang or 0),
+                "max_steer": math.radians(float(self.max_steer_deg or 0)), "max_speed": float(self.max_speed or 0),
+                "max_reverse_speed": float(self.max_reverse_speed or 0)}
+
+
 class Agent(_Frozen):
-    """An agent's start and goal (a position, or a full state [position, velocity]) and its body."""
+    """An agent's start and goal and its body: for a point agent a position or a full state
+    [position, velocity]; for a car a pose [x, y, heading_deg] or [x, y, heading_deg, speed]."""
 
     start: list[float]
     goal: list[float]
+    model: AgentModelSpec = Field(
+        default=AgentModelSpec(),
+        description="The agent's dynamics: `double_integrator` (default) or `car`, a name or a section "
+        "`{type: car, length, width, wheelbase, rear_overhang, max_steer_deg, max_speed, max_reverse_speed}`. "
+        "Left out of the written scenario when it is the default.",
+    )
     body: ScalarOrVector | None = Field(
         default=None,
         description="Half-size [m] of the agent's body, an axis-aligned box around its position: a scalar or "
@@ -372,6 +458,21 @@ class Agent(_Frozen):
         if any(v <= 0 for v in values):
             raise ValueError(f"every half-size must be > 0, got {short_repr(value)}")
         return value
+
+    @model_validator(mode="after")
+    def _car_has_no_body(self) -> Agent:
+        if self.model.is_car and self.body is not None:
+            raise ValueError("body: a car's body is its footprint (model.length, model.width); give no body")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _without_default_model(self, handler: Any) -> Any:
+        """The written agent leaves ``model`` out when it is the default double integrator, so a
+        point-only scenario is written exactly as before models could be chosen."""
+        data = handler(self)
+        if isinstance(data, dict) and self.model == AgentModelSpec():
+            data.pop("model", None)
+        return data
 
 
 class ADMMOptions(_Frozen):
@@ -529,7 +630,12 @@ REMOVED_SOLVER_KEYS: typing.Mapping[str, str] = types.MappingProxyType({
 class SolverConfig(_Frozen):
     """How each MPC step is solved."""
 
-    method: Literal["admm", "centralized"] = "admm"
+    method: Literal["admm", "centralized"] = Field(
+        default="admm",
+        description="`admm`: consensus ADMM over the agents' local problems; `centralized`: one NLP over the "
+        "whole swarm. A scenario with car agents (`agents[].model: car`) needs `centralized` (ADMM does not take "
+        "car agents yet); `solver.local` and the ADMM keys do not apply there.",
+    )
     rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
     max_iter: int = Field(default=100, ge=1, le=MAX_ADMM_ITERATIONS, description="ADMM iteration cap per MPC step")
     tol: float = Field(
@@ -613,6 +719,11 @@ class StopConfig(_Frozen):
 
     goal_tolerance: float = Field(default=0.05, gt=0, description="position tolerance [m]")
     speed_tolerance: float = Field(default=0.1, gt=0, description="speed tolerance at the goal")
+    heading_tolerance_deg: float = Field(
+        default=5.0, gt=0, le=180,
+        description="car agents only: a car is at its goal when, besides the position and speed tolerances, its "
+        "heading is within this many degrees of the goal heading (taken modulo a full turn)",
+    )
     max_steps: int = Field(
         default=400, ge=1, le=MAX_STEPS,
         description="MPC steps at most; the run stops earlier when every agent is at its goal. With the "
@@ -759,11 +870,13 @@ class DeadlockConfig(_Frozen):
         description="Angle [degrees] of the detour direction to the right (clockwise about z) of the goal "
         "direction.",
     )
-    keep_right_deg: float = Field(
-        default=0.0, ge=0, lt=90,
-        description="Anticipation: an agent more than `approach_radius` from its goal, with another agent in its "
-        "way, steers to its goal turned this many degrees to the right about itself from the first such step, "
-        "without waiting to stall, so agents meeting at a common point pass like a roundabout; 0: off.",
+    keep_right_deg: float | None = Field(
+        default=None, ge=0, lt=90,
+        description="Anticipation: an agent more than `approach_radius` from its goal, in traffic (an agent in its "
+        "way, itself farther than `distance_threshold` from its goal), steers to its goal turned this many degrees "
+        "to the right about itself from the first such step, without waiting to stall, so agents meeting at a "
+        "common point pass like a roundabout. 0: off; null: 20 in 2D, off in 3D (where agents pass over and "
+        "under each other and the turn slowed them down).",
     )
     approach_radius: float = Field(
         default=1.0, gt=0,
@@ -1025,6 +1138,27 @@ class Scenario(_Frozen):
         return self.agent_model().state_dim
 
     @property
+    def has_cars(self) -> bool:
+        """True when some agent is a car (``agents[].model: car``)."""
+        return any(a.model.is_car for a in self.agents)
+
+    def agent_models(self) -> tuple[AgentModel, ...]:
+        """Each agent's own dynamics: :meth:`agent_model` for a point agent, the kinematic car of its
+        ``model`` section for a car (this ``dt``; a car's step is RK4 whatever the ``discretization``)."""
+        point = self.agent_model()
+        cars: dict[AgentModelSpec, AgentModel] = {}
+        models = []
+        for agent in self.agents:
+            if not agent.model.is_car:
+                models.append(point)
+                continue
+            if agent.model not in cars:
+                cars[agent.model] = make_model("car", self.dim, self.dt, self.discretization,
+                                               **agent.model.car_params())
+            models.append(cars[agent.model])
+        return tuple(models)
+
+    @property
     def delta_vector(self) -> np.ndarray:
         """Δ per axis: the separation of two default bodies' centres."""
         return np.broadcast_to(np.asarray(self.delta, float), (self.dim,)).copy()
@@ -1034,18 +1168,22 @@ class Scenario(_Frozen):
         """(M, d) half-size of each agent's body per axis: its ``body``, else Δ/2 (halving is exact,
         so two default bodies give b_i + b_j == Δ bit for bit)."""
         default = self.delta_vector / 2.0
-        return np.array([default if a.body is None else np.broadcast_to(np.asarray(a.body, float), (self.dim,))
-                         for a in self.agents])
+        return np.array([_car_half_size(a) if a.model.is_car else default if a.body is None
+                         else np.broadcast_to(np.asarray(a.body, float), (self.dim,)) for a in self.agents])
 
     def start_states(self, model: AgentModel | None = None) -> np.ndarray:
-        """(M, n) start states of ``model`` (default :meth:`agent_model`), at rest where only a
-        position is given."""
+        """(M, n) start states of ``model`` (default: each agent's own, :meth:`agent_models`), at
+        rest where only a position is given; a car's [x, y, heading (rad), speed]."""
+        if model is None and self.has_cars:
+            return np.array([_agent_state(a.start, self.dim, a.model.is_car) for a in self.agents])
         model = model or self.agent_model()
         return np.array([_model_state(a.start, self.dim, model) for a in self.agents])
 
     def goal_states(self, model: AgentModel | None = None) -> np.ndarray:
-        """(M, n) goal states of ``model`` (default :meth:`agent_model`), at rest where only a
-        position is given."""
+        """(M, n) goal states of ``model`` (default: each agent's own, :meth:`agent_models`), at
+        rest where only a position is given; a car's [x, y, heading (rad), speed]."""
+        if model is None and self.has_cars:
+            return np.array([_agent_state(a.goal, self.dim, a.model.is_car) for a in self.agents])
         model = model or self.agent_model()
         return np.array([_model_state(a.goal, self.dim, model) for a in self.agents])
 
@@ -1056,8 +1194,11 @@ class Scenario(_Frozen):
         """Workspace box; without one, the starts' and goals' bounding box padded by 1 m."""
         if self.workspace is not None:
             return np.asarray(self.workspace.lower, float), np.asarray(self.workspace.upper, float)
-        model = self.agent_model()
-        points = np.vstack([model.position(self.start_states(model)), model.position(self.goal_states(model))])
+        if self.has_cars:
+            points = np.vstack([self.start_states()[:, : self.dim], self.goal_states()[:, : self.dim]])
+        else:
+            model = self.agent_model()
+            points = np.vstack([model.position(self.start_states(model)), model.position(self.goal_states(model))])
         return points.min(axis=0) - 1.0, points.max(axis=0) + 1.0
 
     def matrix(self, which: Literal["Q", "R", "Qf"], model: AgentModel | None = None) -> np.ndarray:
@@ -1093,6 +1234,22 @@ def _full_state(vector: list[float], dim: int) -> np.ndarray:
     if values.size == dim:
         return np.concatenate([values, np.zeros(dim)])
     return values
+
+
+def _car_half_size(agent: Agent) -> np.ndarray:
+    """A car's half length and half width: the half-sizes of its footprint in its own frame."""
+    return 0.5 * np.array([agent.model.length or 0.0, agent.model.width or 0.0])
+
+
+def _agent_state(vector: list[float], dim: int, car: bool) -> np.ndarray:
+    """A start or goal as a state of the agent's own model, in a swarm with cars (2D): a car's
+    pose [x, y, heading_deg(, speed)] as [x, y, heading (rad), speed], a point agent's position
+    (at rest) or state as it is."""
+    values = np.asarray(vector, float)
+    if car:
+        speed = values[3] if values.size == 4 else 0.0
+        return np.array([values[0], values[1], math.radians(values[2]), speed])
+    return _full_state(vector, dim)
 
 
 def _model_state(vector: list[float], dim: int, model: AgentModel) -> np.ndarray:
@@ -1147,6 +1304,23 @@ def _weight_error(which: str, value: ScalarOrMatrix, size: int) -> str | None:
     return None
 
 
+def _agent_model_errors(scn: Scenario, n: int) -> list[str]:
+    """What agent ``n``'s model cannot do in this scenario (a car: planar, centralised, a numeric
+    terminal weight, the nominal plant without noise), each a message naming the field."""
+    if not scn.agents[n].model.is_car:
+        return []
+    problems = {
+        f"agents[{n}].model: a car moves in the plane only (dim 2), got dim {scn.dim}": scn.dim != 2,
+        "solver.method: admm does not take car agents yet; use centralized": scn.solver.method == "admm",
+        f"weights.Qf: lqr needs a linear model and agents[{n}] is a car; give a number or a matrix "
+        "(e.g. Qf: 10)": scn.weights.Qf == "lqr",
+        "plant.type: mujoco simulates point agents only, not car agents": scn.plant.type == "mujoco",
+        "disturbance: noise and tightening do not apply to car agents yet (keep the section at zero)":
+            scn.disturbance != Disturbance(),
+    }
+    return [message for message, wrong in problems.items() if wrong][:1]
+
+
 def _shape_errors(scn: Scenario) -> list[str]:
     """Lengths that must match ``dim`` and the scalar rules of single fields, each a message
     that starts with the field path."""
@@ -1177,9 +1351,17 @@ def _shape_errors(scn: Scenario) -> list[str]:
         elif ob.polytope is not None and len(ob.polytope.G[0]) != d:
             errors.append(f"obstacles[{n}].polytope.G: rows must have {d} columns for dim {d}")
     for n, agent in enumerate(scn.agents):
+        errors.extend(_agent_model_errors(scn, n))
         for field in ("start", "goal"):
             size = len(getattr(agent, field))
-            if size not in (d, 2 * d):
+            if agent.model.is_car and d == 2:
+                if size not in (3, 4):
+                    errors.append(f"agents[{n}].{field}: a car takes a pose [x, y, heading_deg] or "
+                                  f"[x, y, heading_deg, speed], got {size} values")
+            elif size == 3 and d == 2:
+                errors.append(f"agents[{n}].{field}: 3 values give a heading, which only a car has (model: car); "
+                              "a point agent takes 2 (position) or 4 (position, velocity)")
+            elif size not in (d, 2 * d):
                 errors.append(
                     f"agents[{n}].{field}: expected {d} (position) or {2 * d} (state) values "
                     f"for dim {d}, got {size}"
@@ -1200,10 +1382,71 @@ def _consistency_errors(scn: Scenario) -> list[str]:
     bodies = scn.bodies
     for field in ("start", "goal"):
         positions = np.array([_full_state(getattr(a, field), scn.dim)[: scn.dim] for a in scn.agents])
-        error = _overlap_error(positions, bodies, field) or _placement_error(scn, positions, bodies, field)
+        if scn.has_cars:
+            error = _footprint_overlap_error(scn, field) or _footprint_placement_error(scn, positions, field)
+        else:
+            error = _overlap_error(positions, bodies, field) or _placement_error(scn, positions, bodies, field)
         if error is not None:
             return [error]
     return []
+
+
+def _footprints_at(scn: Scenario, field: str) -> tuple[np.ndarray, np.ndarray]:
+    """(poses (M, 3), sizes (M, 2)) of every agent's footprint at its start or goal: a car's
+    rectangle, a point agent's axis-aligned body box."""
+    states = scn.start_states() if field == "start" else scn.goal_states()
+    poses = np.zeros((scn.num_agents, 3))
+    sizes = 2.0 * scn.bodies
+    for i, (model, state) in enumerate(zip(scn.agent_models(), states, strict=True)):
+        own = getattr(model, "pose", None)
+        poses[i] = own(state) if callable(own) else (*state[:2], 0.0)
+    return poses, sizes
+
+
+def _footprint_overlap_error(scn: Scenario, field: str) -> str | None:
+    """The first pair of agents (one a car, or both points) whose footprints overlap at ``field``:
+    a positive penetration depth by the exact rectangle distance (touching is allowed, as for the
+    point agents' boxes); one numpy call per agent."""
+    poses, sizes = _footprints_at(scn, field)
+    for i in range(len(poses) - 1):
+        distance = rectangle_distance(poses[i], sizes[i], poses[i + 1 :], sizes[i + 1 :], signed=True)
+        inside = np.flatnonzero(distance < 0)
+        if inside.size:
+            j = i + 1 + int(inside[0])
+            return (f"agents[{j}].{field}: the footprints of agents[{i}] and agents[{j}] overlap there "
+                    f"(by {-float(distance[inside[0]]):.3g} m, exact rectangle distance)")
+    return None
+
+
+def _obstacle_polygons(scn: Scenario) -> list[np.ndarray | None]:
+    """Each obstacle's vertices (n, 2), clipped to the workspace grown by 100 m so that an
+    unbounded polytope has a finite polygon (None: the obstacle is empty or flat there)."""
+    lower, upper = scn.bounds()
+    lower, upper = lower - 100.0, upper + 100.0
+    polygons: list[np.ndarray | None] = []
+    for G, g in scn.obstacle_halfspaces():
+        try:
+            polygons.append(polygon_vertices(np.vstack([G, np.eye(2), -np.eye(2)]), np.concatenate([g, upper, -lower])))
+        except ValueError:
+            polygons.append(None)
+    return polygons
+
+
+def _footprint_placement_error(scn: Scenario, positions: np.ndarray, field: str) -> str | None:
+    """The first agent outside the workspace, or whose footprint reaches into an obstacle: a point
+    agent's body box as without cars, a car's rectangle by the exact distance (touching counts)."""
+    error = _placement_error(scn, positions, scn.bodies, field, points_only=True)
+    if error is not None or not scn.obstacles:
+        return error
+    poses, sizes = _footprints_at(scn, field)
+    for n, polygon in enumerate(_obstacle_polygons(scn)):
+        if polygon is None:
+            continue
+        for i, agent in enumerate(scn.agents):
+            if agent.model.is_car and polygon_distance(footprint_vertices(poses[i], sizes[i]), polygon) <= 0:
+                return (f"agents[{i}].{field}: the car's footprint at {positions[i].tolist()} reaches inside "
+                        f"obstacles[{n}]")
+    return None
 
 
 def _overlap_error(positions: np.ndarray, bodies: np.ndarray, field: str) -> str | None:
@@ -1225,10 +1468,13 @@ def _rounded(values: np.ndarray) -> list[float]:
     return [float(f"{v:.3g}") for v in values]
 
 
-def _placement_error(scn: Scenario, positions: np.ndarray, bodies: np.ndarray, field: str) -> str | None:
+def _placement_error(
+    scn: Scenario, positions: np.ndarray, bodies: np.ndarray, field: str, points_only: bool = False
+) -> str | None:
     """The first agent whose centre lies outside the workspace or whose body reaches into an
     obstacle (the obstacle grown by that agent's body contains its centre), if any; one numpy
-    call per obstacle, not per agent and obstacle. The workspace bounds centres, as in the OCPs."""
+    call per obstacle, not per agent and obstacle. The workspace bounds centres, as in the OCPs
+    (a car's reference point). ``points_only``: the obstacles are checked for point agents only."""
     outside = np.zeros(len(positions), bool)
     if scn.workspace is not None:
         lo, hi = np.asarray(scn.workspace.lower), np.asarray(scn.workspace.upper)
@@ -1236,6 +1482,8 @@ def _placement_error(scn: Scenario, positions: np.ndarray, bodies: np.ndarray, f
     inside = np.zeros((len(positions), len(scn.obstacles)), bool)
     for k, (G, g) in enumerate(scn.obstacle_halfspaces()):
         inside[:, k] = np.all(positions @ G.T <= g + bodies @ np.abs(G).T, axis=1)
+    if points_only:
+        inside[[a.model.is_car for a in scn.agents]] = False
     bad = np.flatnonzero(outside | inside.any(axis=1))
     if not bad.size:
         return None

@@ -9,6 +9,8 @@
 * ``wall-door``: a wall with a door between two groups that swap sides.
 * ``pillars``: agents crossing a field of pillars.
 * ``u-trap``: a U-shaped trap in front of a goal; the straight line leads into it.
+* ``intersection``: eight cars through a four-way crossing, two per arm, going straight or turning.
+* ``mixed``: cars and point robots crossing in the plane.
 
 Every generator declares its arguments in its signature (all take ``seed``, the scenario's seed,
 which ``random`` and ``spread`` also draw their points from); :func:`builtin_scenario` refuses
@@ -36,8 +38,11 @@ from swarmpc.config import (
 )
 from swarmpc.model.geometry import box_signed_distance
 
-PAPER = {"dt": 0.1, "horizon": 10, "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}, "stop": {"max_steps": 600}}
-"""The paper's setting, weights included: paper-2d and paper-3d reproduce it as published."""
+PAPER = {"dt": 0.1, "horizon": 10, "weights": {"Q": 0.1, "R": 1.0, "Qf": 1.0}, "stop": {"max_steps": 600},
+         "deadlock": {"keep_right_deg": 0.0}}
+"""The paper's setting, weights included: paper-2d and paper-3d reproduce it as published (and
+swap-2d, paper-2d with the Riccati terminal weight, keeps its crossing as well: four agents
+keeping right at the crossing took longer than without, docs/lab/controller.md)."""
 CONTROL = {"dt": 0.1, "horizon": 10, "stop": {"max_steps": 600}}
 """Every other built-in: the paper's sample period and horizon with the default weights
 (``Qf: lqr``, :class:`swarmpc.config.Weights`)."""
@@ -201,6 +206,56 @@ def u_trap(delta: float = 0.2, seed: int = 0) -> dict[str, Any]:
             "stop": {"max_steps": 600}}
 
 
+CARS: dict[str, Any] = {
+    "dt": 0.1, "horizon": 20, "solver": {"method": "centralized"},
+    "weights": {"Q": [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.05, 0.0], [0.0, 0.0, 0.0, 0.1]],
+                "R": 1.0, "Qf": 20.0},
+    "limits": {"accel": 1.0, "speed": 1.0},
+    "stop": {"goal_tolerance": 0.1, "heading_tolerance_deg": 10.0, "max_steps": 400},
+}
+"""The built-ins with cars: a 2 s horizon (a car needs room to turn), stage weights light on the
+heading and the speed (a car corrects a sideways offset only by turning away from its goal
+heading for a while), a numeric terminal weight
+(the car has no linearisation for ``Qf: lqr``), the centralised solver (ADMM does not take cars
+yet), 1 m/s and 1 m/s^2, and goals held to 10 cm and 10 degrees."""
+
+
+def _car(start: list[float], goal: list[float]) -> dict[str, Any]:
+    return {"model": "car", "start": start, "goal": goal}
+
+
+def _rotated(pose: tuple[float, float, float], quarter: int) -> list[float]:
+    """``pose`` [x, y, heading_deg] turned by ``quarter`` right angles about the origin."""
+    x, y, heading = pose
+    for _ in range(quarter):
+        x, y = -y, x
+    return [round(x, 6), round(y, 6), float((heading + 90 * quarter + 180) % 360 - 180)]
+
+
+def intersection(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
+    """Eight cars through a four-way crossing of two 3 m roads, right-hand traffic (lanes 0.75 m
+    right of the centre lines): on every arm the front car turns right and the one behind goes
+    straight across; the four arms are the same, turned by right angles. A straight car ends in
+    the lane a turning car entered before it, so it stops short of that car's goal."""
+    arm = [((-3.0, -0.75, 0.0), (-0.75, -4.5, -90.0)), ((-4.5, -0.75, 0.0), (3.0, -0.75, 0.0))]
+    agents = [_car(_rotated(start, q), _rotated(goal, q)) for q in range(4) for start, goal in arm]
+    return {"name": "intersection", "dim": 2, **CARS, "horizon": 15, "delta": delta, "seed": seed,
+            "workspace": {"lower": [-6.0, -6.0], "upper": [6.0, 6.0]}, "agents": agents}
+
+
+def mixed(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
+    """Two cars and two point robots cross in the plane: the cars swap ends of an east-west
+    road, the robots cross it north-south between them."""
+    agents = [
+        _car([-3.0, -0.4, 0.0], [3.0, -0.4, 0.0]),
+        _car([3.0, 0.4, 180.0], [-3.0, 0.4, 180.0]),
+        {"start": [-0.5, -2.5], "goal": [0.5, 2.5]},
+        {"start": [0.5, 2.5], "goal": [-0.5, -2.5]},
+    ]
+    return {"name": "mixed", "dim": 2, **CARS, "delta": delta, "seed": seed,
+            "workspace": {"lower": [-4.0, -4.0], "upper": [4.0, 4.0]}, "agents": agents}
+
+
 BUILTINS: dict[str, tuple[Callable[..., dict[str, Any]], str]] = {
     "paper-2d": (paper_2d, "the paper's 2D experiment: 4 agents swap diagonal corners of a 3 m square"),
     "paper-3d": (paper_3d, "the paper's 3D experiment: 4 drones swap diagonal corners of a 3 m cube"),
@@ -211,6 +266,8 @@ BUILTINS: dict[str, tuple[Callable[..., dict[str, Any]], str]] = {
     "wall-door": (wall_door, "two agents swap sides through the door of a wall"),
     "pillars": (pillars, "four agents cross a 3 x 3 field of pillars"),
     "u-trap": (u_trap, "a U-shaped trap in front of the goal; the straight line leads into it"),
+    "intersection": (intersection, "eight cars through a four-way crossing, two per arm, straight or turning right"),
+    "mixed": (mixed, "two cars and two point robots cross in the plane"),
 }
 
 

@@ -39,12 +39,13 @@ CONDITIONS: Mapping[str, str] = MappingProxyType({
     "admm": "ADMM runs (`solver.method: admm`)",
     "rrt": "runs that used the RRT planner (`solver.initial_guess: rrt`, or `auto` with obstacles)",
     "noise": "runs with process noise (`disturbance.process_position_std` or `process_velocity_std` > 0)",
+    "cars": "runs with car agents (`agents[].model: car`)",
     "run": "written by `swarmpc run` (not by `write_run` alone)",
     "request": "written on request, by the command named",
 })  # fmt: skip
 """When an entry is present: its code (the ``when`` of each entry) and what that means."""
 
-DATA_CONDITIONS = frozenset({"always", "admm", "rrt", "noise"})
+DATA_CONDITIONS = frozenset({"always", "admm", "rrt", "noise", "cars"})
 """The conditions that depend on the run alone (what :func:`conditions_of` can decide)."""
 
 
@@ -122,16 +123,24 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
     KeyDoc("all_reached", "boolean", "–", "always", "Every agent ended at its goal (see `reached`)."),
     KeyDoc(
         "reached", "list of M booleans", "–", "always",
-        "Per agent: the final position is within `stop.goal_tolerance` (Euclidean) of the goal.",
+        "Per agent: the final position is within `stop.goal_tolerance` (Euclidean) of the goal (a car's "
+        "heading also within `stop.heading_tolerance_deg` of the goal's).",
     ),
     KeyDoc(
         "collisions", "integer", "–", "always",
         "Pairs (k, i < j) over the T+1 states whose bodies overlap: |p_i,a − p_j,a| < b_i,a + b_j,a on every axis a "
-        "(b: body half-sizes, Δ/2 by default, so the test is ‖p_i − p_j‖_∞ < Δ; 1e-9 m tolerance).",
+        "(b: body half-sizes, Δ/2 by default, so the test is ‖p_i − p_j‖_∞ < Δ; 1e-9 m tolerance). In a run with "
+        "cars: pairs whose footprints (`trajectory.npz` `poses`, `footprints`) overlap by more than 1e-9 m by the "
+        "exact distance between the rectangles.",
     ),
     KeyDoc(
         "min_separation_inf", "number or null", "m", "always",
         "Smallest ‖p_i − p_j‖_∞ over all states and pairs; null with one agent.",
+    ),
+    KeyDoc(
+        "min_footprint_distance", "number or null", "m", "cars",
+        "Smallest exact distance between two agents' footprints over all states and pairs (negative: minus the "
+        "deepest overlap); null with one agent.",
     ),
     KeyDoc(
         "min_separation_ratio", "number or null", "–", "always",
@@ -140,7 +149,8 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
     ),
     KeyDoc(
         "max_obstacle_penetration", "number or null", "m", "always",
-        "Deepest any agent's body reached into an obstacle (≤ 0: never inside); null without obstacles.",
+        "Deepest any agent's body reached into an obstacle (≤ 0: never inside); null without obstacles. A car's "
+        "is its footprint's penetration depth by the exact distance (minus its least clearance when outside).",
     ),
     KeyDoc(
         "time_to_goal_s", "list of M numbers or nulls", "s", "always",
@@ -248,14 +258,20 @@ ARRAYS: tuple[ArrayDoc, ...] = (
     ArrayDoc("trajectory.npz", "t", "(T+1,)", "float64", "s", "always", "Time of each state: k·dt."),
     ArrayDoc(
         "trajectory.npz", "states", "(T+1, M, 2d)", "float64", "m, m/s", "always",
-        "State [position, velocity] of each agent at each time; `states[0]` are the starts.",
+        "State of each agent at each time, in its own model's layout (`agents[].model`): a point agent's "
+        "[position, velocity], a car's [x, y, θ, v] (rear axle centre [m], heading [rad], signed speed [m/s]; "
+        "cars are planar, so both are 4 wide); `states[0]` are the starts.",
     ),
     ArrayDoc(
         "trajectory.npz", "inputs", "(T, M, d)", "float64", "m/s²", "always",
-        "Acceleration applied from `t[k]` to `t[k+1]`: `states[k+1]` is the discrete dynamics applied to "
+        "Input applied from `t[k]` to `t[k+1]`, in the agent's model's layout: a point agent's acceleration, a "
+        "car's [a, δ] (m/s², steering rad): `states[k+1]` is the agent's discrete dynamics applied to "
         "`states[k]`, `inputs[k]` (plus `disturbances[k]`).",
     ),
-    ArrayDoc("trajectory.npz", "goals", "(M, 2d)", "float64", "m, m/s", "always", "Goal state of each agent."),
+    ArrayDoc(
+        "trajectory.npz", "goals", "(M, 2d)", "float64", "m, m/s", "always",
+        "Goal state of each agent, in its model's layout (a car's heading in rad).",
+    ),
     ArrayDoc(
         "trajectory.npz", "delta", "() or (d,)", "float64", "m", "always",
         "Δ: the clearance between two default bodies' centres (body half-size Δ/2); such agents collide when "
@@ -264,7 +280,8 @@ ARRAYS: tuple[ArrayDoc, ...] = (
     ArrayDoc(
         "trajectory.npz", "bodies", "(M, d)", "float64", "m", "always",
         "Half-size b_i of each agent's body per axis (the scenario's `agents[].body`, Δ/2 by default): agents i "
-        "and j collide when |p_i,a − p_j,a| < b_i,a + b_j,a on every axis a.",
+        "and j collide when |p_i,a − p_j,a| < b_i,a + b_j,a on every axis a. A car's row is half its footprint, "
+        "[length/2, width/2] in its own frame.",
     ),
     ArrayDoc("trajectory.npz", "dt", "()", "float64", "s", "always", "Sampling time."),
     ArrayDoc(
@@ -356,6 +373,8 @@ def conditions_of(scenario: Scenario) -> frozenset[str]:
         held.add("rrt")
     if scenario.disturbance.has_process_noise:
         held.add("noise")
+    if scenario.has_cars:
+        held.add("cars")
     return frozenset(held)
 
 

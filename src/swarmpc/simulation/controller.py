@@ -30,7 +30,7 @@ from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.simulation.results import StepRecord
 from swarmpc.solvers.base import MPCSolver, PlanStep
 from swarmpc.solvers.executors import Executor, make_executor
-from swarmpc.solvers.registry import SOLVERS, SolverRegistry
+from swarmpc.solvers.registry import SOLVERS, SolverRegistry, agent_settings
 
 __all__ = ["Controller", "DeadlockFactory", "GuessFactory", "MPCSolver", "close_solver", "deadlock_resolver",
            "make_solver", "section_executor"]
@@ -52,9 +52,12 @@ def make_solver(
     The solver keeps each pair apart by the sum of the planner's bodies (the true ones grown by
     any tightening), and each agent's body out of the obstacles. A solver given ``executor``
     leaves it open when closed (its creator closes it); without one an ADMM solver makes and
-    closes its own serial one.
+    closes its own serial one. A scenario with cars hands the registry each agent's own settings
+    (:func:`~swarmpc.solvers.registry.agent_settings`): the method's footprint builder makes its
+    solver, and a method without one refuses the swarm.
     """
-    return registry.build(scn.solver.method, scn.solver, settings, planner_bodies(scn), executor)
+    agents = agent_settings(scn) if scn.has_cars else None
+    return registry.build(scn.solver.method, scn.solver, settings, planner_bodies(scn), executor, agents=agents)
 
 
 def section_executor(section: ExecutorConfig) -> Executor | None:
@@ -70,9 +73,13 @@ def section_executor(section: ExecutorConfig) -> Executor | None:
 
 def deadlock_resolver(scn: Scenario, factory: DeadlockFactory = DeadlockResolver) -> DeadlockResolver:
     """The scenario's deadlock resolver: the rules of its ``deadlock`` section, agents kept the
-    planner's clearance apart, detours kept inside the workspace, jitter seeded by the scenario."""
+    planner's clearance apart, detours kept inside the workspace, jitter seeded by the scenario.
+
+    A swarm with cars gets the rules switched off: a detour is a point to steer to at rest, which
+    a car (that cannot side-step, and whose goal is a pose) is not yet given."""
+    section = scn.deadlock.model_copy(update={"enabled": False}) if scn.has_cars else scn.deadlock
     return factory(
-        scn.num_agents, scn.dim, policy=DeadlockPolicy.from_config(scn.deadlock), seed=scn.seed,
+        scn.num_agents, scn.dim, policy=DeadlockPolicy.from_config(section), seed=scn.seed,
         clearance=planner_delta(scn) + scn.d_min, bounds=scn.bounds(),
     )
 

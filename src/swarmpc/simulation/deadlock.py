@@ -67,6 +67,10 @@ if TYPE_CHECKING:
     from swarmpc.config import DeadlockConfig
 
 
+KEEP_RIGHT_PLANE_DEG = 20.0
+"""The keep-right angle of 2D swarms when a scenario does not set one (``deadlock.keep_right_deg``)."""
+
+
 @dataclass(frozen=True)
 class DeadlockPolicy:
     """Thresholds of the detector and shape of the detour (m, m/s, steps, degrees).
@@ -113,12 +117,14 @@ class DeadlockPolicy:
     side_steps: bool = True
     """When the vertical way out of a knot runs into a parked neighbour, step out sideways instead
     (the axis and side that keep farthest from the others)."""
-    keep_right_deg: float = 0.0
-    """Anticipation: an agent farther than ``approach_radius`` from its goal with another agent in
-    its way (``blocked``) steers, from the first such step and without waiting to stall, to its
-    goal turned this many degrees to the right about itself (same distance): all agents meeting
-    near a common point veer the same way and pass like a roundabout. 0: off (only stalled agents
-    are detoured)."""
+    keep_right_deg: float | None = None
+    """Anticipation: an agent farther than ``approach_radius`` from its goal in traffic (another
+    agent in its way, itself farther than ``distance_threshold`` from its goal) steers, from the
+    first such step and without waiting to stall, to its goal turned this many degrees to the
+    right about itself (same distance): agents meeting near a common point all veer the same way
+    and pass like a roundabout, while a neighbour settled in its slot changes nothing. 0: off (only
+    stalled agents are detoured). None: :data:`KEEP_RIGHT_PLANE_DEG` in 2D, off in 3D, where
+    agents pass over and under each other and turning about the vertical slowed them down."""
     enabled: bool = True
     """False: no agent is ever detoured or lifted; every step's goals are the true ones."""
 
@@ -171,6 +177,9 @@ class DeadlockResolver:
         self._detour_left = np.zeros(num_agents, int)
         self._detour_goal: dict[int, np.ndarray] = {}
         self.events: list[tuple[int, int]] = []
+        default = KEEP_RIGHT_PLANE_DEG if dim == 2 else 0.0
+        self.keep_right_deg = default if policy.keep_right_deg is None else policy.keep_right_deg
+        """The keep-right angle in force (the policy's, or the default of the dimension)."""
 
     @property
     def active(self) -> np.ndarray:
@@ -179,6 +188,10 @@ class DeadlockResolver:
     def blocked(self, positions: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Per agent: another agent within ``neighbour_radius`` (inf-norm), ahead of it and within
         the clearance plus ``corridor_margin`` of its straight corridor to the goal."""
+        return np.any(self.blockers(positions, goals), axis=1)
+
+    def blockers(self, positions: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """[i, j]: agent j is in agent i's way (see :meth:`blocked`)."""
         p = self.policy
         offsets = positions[None, :] - positions[:, None]  # [i, j] = p_j - p_i
         near = np.max(np.abs(offsets), axis=2) < p.neighbour_radius
@@ -190,7 +203,13 @@ class DeadlockResolver:
         reach = self.clearance + p.corridor_margin
         # [i, j, s]: corridor point s of agent i lies inside agent j's clearance box (+ margin)
         inside = np.all(np.abs(corridor[:, None] - positions[None, :, None]) < reach, axis=3)
-        return np.any(near & ahead & inside.any(axis=2), axis=1)
+        return near & ahead & inside.any(axis=2)
+
+    def in_traffic(self, positions: np.ndarray, goals: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """Per agent: an agent in its way (:meth:`blockers`) is itself on the move to a goal farther
+        than ``distance_threshold`` away: traffic to pass, not a neighbour settled in its slot."""
+        unsettled = distance > self.policy.distance_threshold
+        return np.any(self.blockers(positions, goals) & unsettled[None, :], axis=1)
 
     @staticmethod
     def _goal_gaps(positions: np.ndarray, goals: np.ndarray, reach: np.ndarray) -> np.ndarray:
@@ -336,20 +355,21 @@ class DeadlockResolver:
             self._detour_left[i] = hold
             self._stalled[i] = 0
             self.events.append((step, int(i)))
-        self._keep_right(out, positions, to_goal, distance, blocked)
+        if self.keep_right_deg > 0:
+            traffic = self.in_traffic(positions, goal_positions, distance)
+            self._keep_right(out, positions, to_goal, distance, traffic)
         for i in np.flatnonzero(self._detour_left > 0):
             out[i] = self._detour_goal[int(i)]
             self._detour_left[i] -= 1
         return out
 
     def _keep_right(self, out: np.ndarray, positions: np.ndarray, to_goal: np.ndarray, distance: np.ndarray,
-                    blocked: np.ndarray) -> None:
-        """Turn the goals of blocked agents far from their goals ``keep_right_deg`` to the right
-        about the agent (in place; agents on a detour or waiting in a knot keep theirs)."""
+                    traffic: np.ndarray) -> None:
+        """Turn the goals of agents far from their goals in traffic (:meth:`in_traffic`)
+        ``keep_right_deg`` to the right about the agent (in place; agents on a detour or waiting in
+        a knot keep theirs)."""
         p, model = self.policy, self.model
-        if p.keep_right_deg <= 0:
-            return
-        veer = blocked & (distance > p.approach_radius) & (self._detour_left == 0) & (self._waiting == 0)
+        veer = traffic & (distance > p.approach_radius) & (self._detour_left == 0) & (self._waiting == 0)
         for i in np.flatnonzero(veer):
-            turned = right_turn(to_goal[i], np.radians(p.keep_right_deg))
+            turned = right_turn(to_goal[i], np.radians(self.keep_right_deg))
             out[i] = model.state_at(positions[i] + turned)

@@ -5,11 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from swarmpc.config import Scenario
+from swarmpc.formulation.footprint_ocp import FootprintAgent, OrientedBody
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.geometry import inflate_polytope
 from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.solvers.base import SHIFT_TOLERANCE, PlanStep
+from swarmpc.solvers.footprint_central import straight_guess
 from swarmpc.solvers.guesses import nominal_speed
+from swarmpc.solvers.registry import agent_settings
 from swarmpc.solvers.rrt import RRTGuess, straight_line_guess
 
 
@@ -29,6 +32,11 @@ class GuessProvider:
     (:meth:`goals`), so a short horizon is not trapped in front of a wall. The RRT state guess is
     then taken along the path to the agent's route goal (the goal :meth:`goals` was given), not to
     the moving waypoint, so the stored path is reused from step to step instead of re-planned.
+
+    A car (``agents[].model: car``) is guessed with its own model: shifted as above, otherwise
+    along the straight line heading where it goes
+    (:func:`~swarmpc.solvers.footprint_central.straight_guess`); the RRT plans points, so it
+    guesses and steers the point agents only.
     """
 
     def __init__(self, scn: Scenario, settings: OCPSettings, strategy: str | None = None) -> None:
@@ -42,6 +50,10 @@ class GuessProvider:
             self._rrt_of = self._body_planners(scn)
         self.lookahead = 1.5 * self.speed * settings.horizon * settings.dt
         self._route: np.ndarray | None = None  # the goals given to the last goals() call
+        self._cars: list[FootprintAgent | None] = [None] * scn.num_agents  # per agent: a car's own settings
+        if scn.has_cars:
+            self._cars = [FootprintAgent(s) if isinstance(s.model, OrientedBody) else None
+                          for s in agent_settings(scn)]
 
     def _body_planners(self, scn: Scenario) -> list[RRTGuess]:
         """One RRT planner per body size, around the obstacles grown by that body (the planner's
@@ -72,6 +84,9 @@ class GuessProvider:
 
     def _fresh(self, agent: int, state: np.ndarray, goal: np.ndarray) -> np.ndarray:
         s, model = self.settings, self.settings.model
+        car = self._cars[agent]
+        if car is not None:
+            return straight_guess(car, state, goal)
         if self._rrt_of:
             if self._route is not None and agent < len(self._route):
                 goal = self._route[agent]  # plan (and reuse) towards the route goal, not the waypoint
@@ -89,7 +104,7 @@ class GuessProvider:
         out = goals.copy()
         for i, (state, goal) in enumerate(zip(states, goals, strict=True)):
             here, there = model.position(state), model.position(goal)
-            if self._rrt_of[i].line_of_sight(here, there):
+            if self._cars[i] is not None or self._rrt_of[i].line_of_sight(here, there):
                 continue
             waypoint = self._rrt_of[i].waypoint(i, here, there, self.lookahead)
             if waypoint is not None:
@@ -108,7 +123,7 @@ class GuessProvider:
             ):
                 plan = previous.states[i]
                 out.append(np.vstack([plan[1:], plan[-1:]]))
-            elif self.strategy == "straight":
+            elif self.strategy == "straight" and self._cars[i] is None:
                 s = self.settings
                 out.append(straight_line_guess(state, s.model.position(goal), s.dt, s.horizon, self.speed, s.model))
             else:

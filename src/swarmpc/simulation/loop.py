@@ -19,23 +19,34 @@ from swarmpc.config import Scenario
 from swarmpc.simulation.controller import Controller, DeadlockFactory, GuessFactory, make_solver
 from swarmpc.simulation.deadlock import DeadlockResolver
 from swarmpc.simulation.guessing import GuessProvider
+from swarmpc.simulation.metrics import heading_error
 from swarmpc.simulation.plant import Plant, make_plant
 from swarmpc.simulation.results import RunResult, StepRecord
 from swarmpc.solvers.base import MPCSolver
 from swarmpc.solvers.executors import Executor
 
-__all__ = ["MPCSolver", "ProgressCallback", "StopFlag", "goal_reached", "make_solver", "simulate"]
+__all__ = ["MPCSolver", "ProgressCallback", "StopFlag", "goal_reached", "heading_error", "make_solver", "simulate"]
 
 ProgressCallback = Callable[[int, int, np.ndarray], None]
 
 
 def goal_reached(states: np.ndarray, goals: np.ndarray, scn: Scenario) -> np.ndarray:
     """Per agent: within the goal tolerance in position and nearly at rest (the scenario's agent
-    model reads both from the states)."""
-    model = scn.agent_model()
-    near = np.linalg.norm(model.position(states) - model.position(goals), axis=1) <= scn.stop.goal_tolerance
-    slow = np.linalg.norm(model.velocity(states) - model.velocity(goals), axis=1) <= scn.stop.speed_tolerance
-    return near & slow
+    model reads both from the states); a car also within ``stop.heading_tolerance_deg`` of its
+    goal heading, modulo a full turn (:func:`heading_error`)."""
+    if not scn.has_cars:
+        model = scn.agent_model()
+        near = np.linalg.norm(model.position(states) - model.position(goals), axis=1) <= scn.stop.goal_tolerance
+        slow = np.linalg.norm(model.velocity(states) - model.velocity(goals), axis=1) <= scn.stop.speed_tolerance
+        return near & slow
+    reached = np.empty(scn.num_agents, bool)
+    for i, (model, agent) in enumerate(zip(scn.agent_models(), scn.agents, strict=True)):
+        near = np.linalg.norm(model.position(states[i]) - model.position(goals[i])) <= scn.stop.goal_tolerance
+        slow = np.linalg.norm(model.velocity(states[i]) - model.velocity(goals[i])) <= scn.stop.speed_tolerance
+        aligned = not agent.model.is_car or bool(
+            np.degrees(heading_error(states[i, 2], goals[i, 2])) <= scn.stop.heading_tolerance_deg)
+        reached[i] = near and slow and aligned
+    return reached
 
 
 @dataclass

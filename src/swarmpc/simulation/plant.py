@@ -4,9 +4,9 @@ A :class:`Plant` holds the true states of all agents. The loop asks it what the 
 (:meth:`Plant.measure`), hands the measurement to the controller and applies the controller's
 inputs for one sampling period (:meth:`Plant.step`). Two plants come with swarmpc:
 
-* :class:`DoubleIntegratorPlant`: the planner's own agent model (the scenario's
-  :meth:`~swarmpc.config.Scenario.agent_model`, the double integrator), exactly, plus the
-  scenario's seeded ``disturbance`` noise (the default plant);
+* :class:`DoubleIntegratorPlant`: the planner's own agent models (each agent's,
+  :meth:`~swarmpc.config.Scenario.agent_models`: the double integrator, or a car's kinematic
+  bicycle), exactly, plus the scenario's seeded ``disturbance`` noise (the default plant);
 * :class:`~swarmpc.simulation.mujoco_plant.MuJoCoPlant`: rigid bodies in the MuJoCo physics
   engine (``plant: {type: mujoco}``), imported only when a scenario asks for it.
 
@@ -23,6 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from swarmpc.config import PlantConfig, Scenario
+from swarmpc.model.agent_model import AgentModel
 from swarmpc.simulation.disturbance import DisturbanceModel
 
 
@@ -67,9 +68,25 @@ def checked_inputs(inputs: Any, num_agents: int, dim: int) -> np.ndarray:
     return array
 
 
+def model_groups(models: tuple[AgentModel, ...]) -> list[tuple[AgentModel, np.ndarray]]:
+    """The agents grouped by equal model: (model, agent indices) in order of first appearance."""
+    groups: list[tuple[AgentModel, list[int]]] = []
+    for i, model in enumerate(models):
+        for known, members in groups:
+            if known == model:
+                members.append(i)
+                break
+        else:
+            groups.append((model, [i]))
+    return [(model, np.array(members)) for model, members in groups]
+
+
 class DoubleIntegratorPlant:
-    """The planner's agent model (the discrete double integrator), with the scenario's process and
-    measurement noise.
+    """The planner's agent models (the discrete double integrator; a car's kinematic bicycle), with
+    the scenario's process and measurement noise.
+
+    Each agent steps with its own model; agents of one model step in one call (a swarm of point
+    agents is one call, as it always was).
 
     The noise comes from :class:`~swarmpc.simulation.disturbance.DisturbanceModel`, seeded by the
     scenario: measurement noise is drawn in :meth:`measure`, process noise in :meth:`step`, so a
@@ -80,6 +97,7 @@ class DoubleIntegratorPlant:
     def __init__(self, scn: Scenario) -> None:
         self.scenario = scn
         self.model = scn.agent_model()
+        self.groups = model_groups(scn.agent_models())
         self.nominal = not scn.disturbance.has_process_noise
         self.noise = DisturbanceModel.from_scenario(scn)
         self.states = scn.start_states()
@@ -97,7 +115,13 @@ class DoubleIntegratorPlant:
     def step(self, inputs: np.ndarray) -> np.ndarray:
         control = checked_inputs(inputs, self.scenario.num_agents, self.model.input_dim)
         disturbance = self.noise.process()
-        self.states = self.model.step(self.states, control) + disturbance
+        if len(self.groups) == 1:
+            following = self.groups[0][0].step(self.states, control)
+        else:
+            following = np.empty_like(self.states)
+            for model, members in self.groups:
+                following[members] = model.step(self.states[members], control[members])
+        self.states = following + disturbance
         self.last_disturbance = disturbance
         return self.states
 

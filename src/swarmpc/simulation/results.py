@@ -335,8 +335,8 @@ def _write_contents(result: RunResult, folder: Path) -> None:
         "delta": delta,
         "dt": np.asarray(scn.dt),
         "bodies": scn.bodies,
-        "poses": agent_poses(scn.agent_model(), result.states),
-        "footprints": agent_footprints(scn.agent_model(), scn.bodies),
+        "poses": agent_poses(scn.agent_models(), result.states),
+        "footprints": agent_footprints(scn.agent_models(), scn.bodies),
     }
     if result.disturbances is not None:
         # states[k+1] = f(states[k], inputs[k]) + disturbances[k]

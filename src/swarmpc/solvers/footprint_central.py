@@ -34,12 +34,13 @@ from swarmpc.formulation.footprint_ocp import (
 )
 from swarmpc.formulation.nlp import NLPSolution, shift_blocks
 from swarmpc.formulation.ocp import pair_tag
-from swarmpc.solvers.base import braking_plan
+from swarmpc.solvers.base import PlanStep, braking_plan
 from swarmpc.solvers.guesses import agent_guess_blocks, nominal_speed, pair_guess_blocks
 
 __all__ = [
     "AgentPlan",
     "FootprintCentralSolver",
+    "FootprintMPCSolver",
     "FootprintPlan",
     "FootprintPlanStats",
     "straight_guess",
@@ -142,6 +143,11 @@ class FootprintCentralSolver:
         """Forget the previous solution: the next solve starts from a guess."""
         self._previous = None
 
+    @property
+    def warm(self) -> bool:
+        """True when the next solve without a guess starts from the shifted previous solution."""
+        return self._previous is not None
+
     def initial_point(self, guesses: Sequence[np.ndarray]) -> dict[str, np.ndarray]:
         """The primal point of state guesses (one (N+1, n_i) per agent): trajectories, inputs,
         and every certificate and soft slack from the guessed poses."""
@@ -207,3 +213,51 @@ class FootprintCentralSolver:
             warm=warm,
         )
         return FootprintPlan(tuple(plan.inputs[0].copy() for plan in plans), plans, stats)
+
+
+def nearest_heading(goal: np.ndarray, state: np.ndarray) -> np.ndarray:
+    """A car's goal state (4,) with its heading moved by whole turns to within pi of the state's,
+    so that the cost on the heading error turns the car the short way round."""
+    goal = np.array(goal, float)
+    goal[2] += 2 * np.pi * np.round((float(state[2]) - goal[2]) / (2 * np.pi))
+    return goal
+
+
+class FootprintMPCSolver:
+    """:class:`FootprintCentralSolver` behind the closed loop's
+    :class:`~swarmpc.solvers.base.MPCSolver` protocol: stacked (M, ...) arrays in and a
+    :class:`~swarmpc.solvers.base.PlanStep` out.
+
+    Every agent's state and input have its own model's layout; the closed loop stacks them, so
+    the models must agree on the sizes (in the plane a car and a point agent both have 4 state
+    and 2 input entries). A car's goal heading is taken within pi of its current heading
+    (:func:`nearest_heading`). The solve starts from the solver's own shifted previous solution
+    (primal and multipliers) while it has one, and from the caller's guess otherwise.
+    """
+
+    def __init__(self, solver: FootprintCentralSolver) -> None:
+        self.solver = solver
+        shapes = {(a.settings.model.state_dim, a.settings.model.input_dim) for a in solver.swarm.agents}
+        if len(shapes) != 1:
+            raise ValueError(f"the agents' models differ in state or input size {sorted(shapes)}: "
+                             "they cannot be stacked")
+
+    def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray | None) -> PlanStep:
+        """One MPC step of the swarm from measured ``states`` (M, n) to ``goals`` (M, n)."""
+        agents = self.solver.swarm.agents
+        targets = [nearest_heading(goals[i], states[i]) if agent.oriented else np.asarray(goals[i], float)
+                   for i, agent in enumerate(agents)]
+        start = None if self.solver.warm or guess is None else [np.asarray(g, float) for g in guess]
+        outcome = self.solver.plan(list(states), targets, start)
+        stats, m = outcome.stats, len(agents)
+        return PlanStep(
+            states=np.array([plan.states for plan in outcome.plans]),
+            inputs=np.array([plan.inputs for plan in outcome.plans]),
+            predicted_cost=stats.cost,
+            max_slack=stats.max_slack,
+            wall_time=stats.wall_time,
+            agent_times=np.full(m, stats.solve_time / m),
+            failures=0 if stats.success else 1,
+            fallback=np.full(m, stats.fallback),
+            critical_path=stats.wall_time,  # one process solves the whole step
+        )
