@@ -172,3 +172,12 @@ def test_car_builtins_reach_every_goal_pose_without_a_collision(tmp_path: Path, 
     code, stderr = cli_in_process("run", name, "--out", str(out), "--quiet")
     assert code == 0, stderr
     _assert_at_goal_poses_without_collision(out)
+
+
+def test_the_run_paragraph_reports_the_footprint_distance_for_cars(tmp_path: Path):
+    from swarmpc.cli import result_paragraph
+
+    summary = simulate(scenario_from_dict(_scenario(**{"stop.max_steps": 3}))).summary
+    text = result_paragraph(summary, tmp_path)
+    assert f"min footprint distance {summary['min_footprint_distance']:.3f} m" in text
+    assert "(b_i + b_j)" not in text

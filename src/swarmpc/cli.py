@@ -444,7 +444,10 @@ def result_paragraph(summary: dict[str, Any], folder: Path) -> str:
         else ""
     )
     sep = summary.get("min_separation_ratio")
-    sep_text = f"{sep:.2f}" if sep is not None else "n/a"
+    sep_text = f"min separation {sep:.2f} x (b_i + b_j)" if sep is not None else "min separation n/a"
+    if "min_footprint_distance" in summary:  # a swarm with cars: the exact distance between footprints
+        gap = summary["min_footprint_distance"]
+        sep_text = f"min footprint distance {gap:.3f} m" if gap is not None else "min footprint distance n/a"
     status = "interrupted; " if summary.get("interrupted") else ""
     median = f"{times['median']:.1f}" if times["median"] is not None else "n/a"
     p95 = f"{times['p95']:.1f}" if times["p95"] is not None else "n/a"
@@ -452,7 +455,7 @@ def result_paragraph(summary: dict[str, Any], folder: Path) -> str:
         f"{status}{summary['scenario']} ({summary['method']}, {summary['collision']}): "
         f"{reached}/{summary['num_agents']} agents reached their goals in {summary['steps']} steps "
         f"({summary['sim_time_s']:.1f} s simulated), {summary['collisions']} collisions, "
-        f"min separation {sep_text} x (b_i + b_j), closed-loop cost {summary['cost']:.1f}. "
+        f"{sep_text}, closed-loop cost {summary['cost']:.1f}. "
         f"Per-step solve time {median} ms median, {p95} ms p95.{admm} "
         f"Solver failures: {summary['solver_failures']}, deadlocks resolved: {summary['deadlocks']}. "
         f"Wrote {folder}/"
