@@ -11,7 +11,7 @@ differ only in their times, which are pooled. Per scenario and local step:
 * ADMM iterations per step (mean, max), steps until every agent is at its goal, closed-loop cost,
   collisions, and the calls the QP path failed that IPOPT answered (``local_fallbacks``).
 
-    .venv/bin/python benchmarks/local_qp_vs_ipopt.py [--repeats 2] [--agents 16]
+    .venv/bin/python benchmarks/local_qp_vs_ipopt.py [--repeats 2] [--agents 16] [--seeds 3]
 
 Prints a markdown table; writes benchmarks/results/local_qp_vs_ipopt.json.
 """
@@ -52,9 +52,13 @@ class CallRecorder(SerialExecutor):
         return results
 
 
-def scenarios(agents: int) -> dict[str, Scenario]:
-    return {"paper-2d": builtin_scenario("paper-2d"),
-            f"random-3d-{agents}": builtin_scenario("random", agents=agents, dim=3, seed=0)}
+def scenarios(agents: int, seeds: int) -> dict[str, Scenario]:
+    """paper-2d, paper-3d, random 3D swarms of 8 agents (``seeds`` seeds) and of ``agents`` (seed 0)."""
+    chosen = {"paper-2d": builtin_scenario("paper-2d"), "paper-3d": builtin_scenario("paper-3d")}
+    chosen.update({f"random-3d-8-s{seed}": builtin_scenario("random", agents=8, dim=3, seed=seed)
+                   for seed in range(seeds)})
+    chosen[f"random-3d-{agents}"] = builtin_scenario("random", agents=agents, dim=3, seed=0)
+    return chosen
 
 
 def fly(scn: Scenario, local: str) -> dict[str, Any]:
@@ -114,10 +118,11 @@ def table(rows: list[dict[str, Any]]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=2, help="runs of each (scenario, local step)")
-    parser.add_argument("--agents", type=int, default=16, help="agents of the random 3D scenario")
+    parser.add_argument("--agents", type=int, default=16, help="agents of the larger random 3D scenario")
+    parser.add_argument("--seeds", type=int, default=3, help="seeds of the random 3D scenario with 8 agents")
     args = parser.parse_args()
     rows = []
-    for name, scn in scenarios(args.agents).items():
+    for name, scn in scenarios(args.agents, args.seeds).items():
         runs: dict[str, list[dict[str, Any]]] = {local: [] for local in LOCALS}
         for _ in range(args.repeats):
             for local in LOCALS:  # interleaved: qp, ipopt, qp, ipopt, ...
