@@ -270,8 +270,39 @@ def batched_qp_experiment(data: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+BENCH_COLUMNS = (
+    ("family", "family", "{}"), ("M", "agents", "{}"), ("local", "local", "{}"), ("runs", "runs", "{}"),
+    ("all reached", "all_reached_rate", "{:.0%}"), ("collision-free", "collision_free_rate", "{:.0%}"),
+    ("makespan s (median)", "makespan_s_median", "{:.1f}"), ("vs lone", "interaction_ratio_median", "{:.2f}"),
+    ("per-agent ms median", "agent_ms_median", "{:.2f}"), ("p99", "agent_ms_p99", "{:.1f}"),
+    ("critical path ms median", "critical_path_ms_median", "{:.1f}"), ("p99", "critical_path_ms_p99", "{:.0f}"),
+    ("deadline misses", "deadline_misses", "{}"), ("wall s per run", "wall_s_per_run_median", "{:.0f}"),
+    ("local fallbacks", "local_fallbacks", "{}"),
+)
+"""The columns of a ``swarmpc bench`` report shown in the lab record: (header, row key, format)."""
+
+
+def bench_experiment(data: dict[str, Any]) -> dict[str, Any]:
+    """The lab experiment of a ``swarmpc bench`` report (its ``bench.json``, copied into
+    benchmarks/results/ with the keys ``id``, ``title``, ``status``, ``date``, ``command``, ``what``
+    and ``note`` added): the report's rows in the columns of ``BENCH_COLUMNS``."""
+    table = [[_bench_cell(row.get(key), fmt) for _, key, fmt in BENCH_COLUMNS] for row in data["rows"]]
+    what = f"{data['what'].strip()} Machine: {data['machine']}; {data['elapsed_s'] / 60:.0f} min in all."
+    return {
+        "id": data["id"], "title": data["title"], "status": data["status"], "date": data["date"], "commit": None,
+        "commands": [data["command"]], "what": what,
+        "tables": [{"caption": None, "columns": [c[0] for c in BENCH_COLUMNS], "rows": table}],
+        "note": data["note"].strip(),
+    }
+
+
+def _bench_cell(value: Any, fmt: str) -> str:
+    return "–" if value is None else fmt.format(value)
+
+
 GENERATED = {
     "batched_qp.json": ("admm", "local-solver-candidates", batched_qp_experiment),
+    "bench-random-fast-qp.json": ("controller", "knot-rule", bench_experiment),
 }
 """Raw benchmark output file -> (record, the experiment it follows on that record's page, builder)."""
 
