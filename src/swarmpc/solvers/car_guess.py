@@ -75,23 +75,17 @@ from ompl import util as ou
 
 from swarmpc.model.car import KinematicCar
 from swarmpc.model.footprint import polygon_distance, polygon_vertices, rotation
+from swarmpc.solvers.rrt import ompl_seed, simplify_path
 
 __all__ = ["car_guess", "car_path", "car_straight_guess"]
 
 Obstacles = Sequence[tuple[np.ndarray, np.ndarray]]
 
-_SIMPLIFY_PASSES = 3  # deterministic simplifier passes at most (stop early when no gain)
-_SIMPLIFY_MIN_GAIN = 1e-3  # relative length gain below which another pass is not worth it
 _SAME_POSE = 1e-12  # poses whose reference points are closer than this [m] are the same point
 _DIRECTION_PROBE = 1e-7  # length [m] of the step that reads the direction of motion along a curve
 _BISECTIONS = 60  # bisection steps locating a cusp between two checked poses
 _STOP_TOL = 1e-9  # arc length [m] within which the guess counts as arrived at a stop
 _START_TOL = 1e-6  # largest mismatch between a path's first pose and the car's pose [m, rad]
-
-
-def _ompl_seed(seed: int) -> int:
-    """Map any integer to OMPL's valid seed range [1, 2**32 - 1] (0 is rejected by OMPL)."""
-    return int(seed) % 0xFFFFFFFF + 1
 
 
 def _vector(x: np.ndarray, size: int, name: str) -> np.ndarray:
@@ -227,15 +221,7 @@ def _solve(si: ob.SpaceInformation, start: np.ndarray, goal: np.ndarray, time_li
         return []
     path = og.PathGeometric(setup.getSolutionPath())
     raw = og.PathGeometric(path)
-    simplifier = og.PathSimplifier(si)
-    one_pass = ob.plannerAlwaysTerminatingCondition()  # atLeastOnce=True: exactly one pass
-    length = path.length()
-    for _ in range(_SIMPLIFY_PASSES):
-        simplifier.simplify(path, one_pass, True)
-        new_length = path.length()
-        if new_length > length * (1.0 - _SIMPLIFY_MIN_GAIN):
-            break
-        length = new_length
+    simplify_path(si, path)
     return [path, raw]
 
 
@@ -378,7 +364,7 @@ def _plan(
     """One planning attempt of :func:`car_path`, in the Reeds-Shepp (``reverse``) or Dubins space."""
     # Reseeding after OMPL has created generators reseeds the seed generator (OMPL logs an
     # error saying it is not deterministic, but the generators created after it are).
-    ou.RNG.setSeed(_ompl_seed(seed))
+    ou.RNG.setSeed(ompl_seed(seed))
     si = _space_information(validity, reverse)
     # The simplifier's B-spline smoothing repairs states, not motions, and the cusps between
     # checked poses were never checked: hand out the first candidate whose every pose is valid.

@@ -148,15 +148,30 @@ class _Validity:
         return check
 
 
-def _ompl_seed(seed: int) -> int:
+def ompl_seed(seed: int) -> int:
     """Map any integer to OMPL's valid seed range [1, 2**32 - 1] (0 is rejected by OMPL)."""
     return int(seed) % 0xFFFFFFFF + 1
+
+
+def simplify_path(si: ob.SpaceInformation, path: og.PathGeometric) -> None:
+    """Shorten ``path`` in place by OMPL's simplifier, one deterministic pass at a time, at most
+    ``_SIMPLIFY_PASSES`` and only while a pass still gains ``_SIMPLIFY_MIN_GAIN`` of the length
+    (an unbounded simplification would depend on the machine's speed)."""
+    simplifier = og.PathSimplifier(si)
+    one_pass = ob.plannerAlwaysTerminatingCondition()  # atLeastOnce=True: exactly one pass
+    length = path.length()
+    for _ in range(_SIMPLIFY_PASSES):
+        simplifier.simplify(path, one_pass, True)
+        new_length = path.length()
+        if new_length > length * (1.0 - _SIMPLIFY_MIN_GAIN):
+            break
+        length = new_length
 
 
 def _derived_seed(seed: int, agent_id: int, counter: int) -> int:
     """A per-(agent, call) seed, a deterministic function of the base seed only."""
     entropy = [int(seed) % 2**64, int(agent_id) % 2**64, int(counter)]
-    return _ompl_seed(int(np.random.SeedSequence(entropy).generate_state(1, np.uint32)[0]))
+    return ompl_seed(int(np.random.SeedSequence(entropy).generate_state(1, np.uint32)[0]))
 
 
 def _to_point(x: np.ndarray, dim: int, name: str) -> np.ndarray:
@@ -200,7 +215,7 @@ def _plan(
     try:
         # Reseeding after OMPL has created generators reseeds the seed generator (OMPL logs an
         # error saying it is not deterministic, but the generators created after it are).
-        ou.RNG.setSeed(_ompl_seed(seed))
+        ou.RNG.setSeed(ompl_seed(seed))
         space = ob.RealVectorStateSpace(dim)
         bounds = ob.RealVectorBounds(dim)
         for i in range(dim):
@@ -228,15 +243,7 @@ def _plan(
         raw_path = og.PathGeometric(path)
         raw_path.interpolate()
         raw = _path_array(raw_path, dim)
-        simplifier = og.PathSimplifier(si)
-        one_pass = ob.plannerAlwaysTerminatingCondition()  # atLeastOnce=True: exactly one pass
-        length = path.length()
-        for _ in range(_SIMPLIFY_PASSES):
-            simplifier.simplify(path, one_pass, True)
-            new_length = path.length()
-            if new_length > length * (1.0 - _SIMPLIFY_MIN_GAIN):
-                break
-            length = new_length
+        simplify_path(si, path)
         path.interpolate()
         waypoints = _path_array(path, dim)
     finally:
