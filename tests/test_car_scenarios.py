@@ -74,7 +74,7 @@ def test_point_only_scenarios_are_written_without_a_model_key():
 
 BAD = [
     ({"dim": 3, "workspace": None}, "agents[0].model"),
-    ({"solver.method": "admm"}, "solver.method"),
+    ({"solver.method": "admm", "solver.local": "qp"}, "solver.local"),
     ({"weights.Qf": "lqr"}, "weights.Qf"),
     ({"agents.2.start": [0.0, -2.0, 90.0]}, "agents[2].start"),
     ({"agents.0.start": [-2.0, -0.4]}, "agents[0].start"),
@@ -102,9 +102,10 @@ def test_bad_car_scenarios_fail_in_one_line_naming_the_field(tmp_path: Path, cha
     assert not out.exists()
 
 
-def test_admm_refusal_says_what_to_use():
-    with pytest.raises(ScenarioError, match="admm does not take car agents yet; use centralized"):
-        scenario_from_dict(_scenario(**{"solver.method": "admm"}))
+def test_admm_with_cars_takes_ipopt_local_steps_only():
+    assert scenario_from_dict(_scenario(**{"solver.method": "admm"})).solver.method == "admm"
+    with pytest.raises(ScenarioError, match="solver.local: qp needs a linear model"):
+        scenario_from_dict(_scenario(**{"solver.method": "admm", "solver.local": "qp"}))
 
 
 # ------------------------------------------------------------------ a short run's folder

@@ -116,8 +116,9 @@ def takes(scenario: str, option: str) -> bool:
 
 
 CAR_BUILTINS = {"intersection", "mixed"}
-CAR_REFUSALS = {("--method", "admm"), ("--plant", "mujoco")}
-"""What a swarm with car agents refuses: consensus ADMM and the MuJoCo plant do not take cars."""
+CAR_REFUSALS = {("--plant", "mujoco"), ("--executor", "thread"), ("--executor", "process"), ("--executor", "ray")}
+"""What a swarm with car agents refuses: the MuJoCo plant does not take cars, and its solvers run
+in the calling process."""
 
 
 def refused(scenario: str, option: str, value: str) -> bool:

@@ -34,6 +34,7 @@ from swarmpc.solvers.admm import ADMMConfig, ADMMSolver
 from swarmpc.solvers.base import MPCSolver
 from swarmpc.solvers.centralized import CentralizedSolver
 from swarmpc.solvers.executors import Executor
+from swarmpc.solvers.footprint_admm import FootprintADMMMPCSolver, FootprintADMMOptions, FootprintADMMSolver
 from swarmpc.solvers.footprint_central import FootprintCentralSolver, FootprintMPCSolver
 
 SolverBuilder = Callable[[SolverConfig, OCPSettings, np.ndarray, "Executor | None"], MPCSolver]
@@ -110,15 +111,30 @@ def footprint_central_solver(
     """One NLP over a swarm of cars and point agents, the full OBCA between footprints
     (:class:`~swarmpc.solvers.footprint_central.FootprintCentralSolver`); a point agent's
     footprint is its body box (its row of ``bodies``). No local solves: ``executor`` is not used."""
-    swarm = FootprintSwarm(tuple(
+    return FootprintMPCSolver(FootprintCentralSolver(_footprint_swarm(agents, bodies)))
+
+
+def _footprint_swarm(agents: tuple[OCPSettings, ...], bodies: np.ndarray) -> FootprintSwarm:
+    """The footprint swarm of per-agent settings; a point agent's footprint is its body box."""
+    return FootprintSwarm(tuple(
         FootprintAgent(s) if isinstance(s.model, OrientedBody) else FootprintAgent(s, (bodies[i, 0], bodies[i, 1]))
         for i, s in enumerate(agents)
     ))
-    return FootprintMPCSolver(FootprintCentralSolver(swarm))
+
+
+def footprint_admm_solver(
+    options: SolverConfig, agents: tuple[OCPSettings, ...], bodies: np.ndarray, executor: Executor | None = None
+) -> FootprintADMMMPCSolver:
+    """Consensus ADMM over a swarm of cars and point agents, agreeing on footprint poses
+    (:class:`~swarmpc.solvers.footprint_admm.FootprintADMMSolver`). Its local solves run in the
+    calling process: ``executor`` is not used."""
+    return FootprintADMMMPCSolver(FootprintADMMSolver(_footprint_swarm(agents, bodies),
+                                                      FootprintADMMOptions.from_options(options)))
 
 
 SOLVERS = (SolverRegistry().register("admm", admm_solver).register("centralized", centralized_solver)
-           .register_footprint("centralized", footprint_central_solver))
+           .register_footprint("centralized", footprint_central_solver)
+           .register_footprint("admm", footprint_admm_solver))
 """The methods of ``solver.method``."""
 
 

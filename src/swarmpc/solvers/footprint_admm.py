@@ -1,0 +1,420 @@
+"""Consensus ADMM for a swarm with cars: every agent plans its own trajectory against copies of its
+neighbours' footprint poses (:mod:`swarmpc.formulation.footprint_local`), and the agents agree on
+those poses.
+
+One MPC step (:meth:`FootprintADMMSolver.plan`):
+
+1. **Coupling.** Agents i and j are neighbours when the exact distance between their footprints
+   now is at most the sum of what either can move within the horizon
+   (:meth:`~swarmpc.model.agent_model.AgentModel.reach_bound`, a point agent's inf-norm bound
+   times sqrt 2) plus d_min and ``coupling_margin``. Two agents that are not cannot touch within
+   the horizon, whatever they plan, so they need no copies of each other.
+2. **ADMM** (scaled form). Each agent's consensus block is its footprint pose at steps 1..N
+   (:func:`~swarmpc.formulation.footprint_local.consensus_block`); its holders are the agent
+   itself and every neighbour (its copy). Per iteration every agent solves its local problem
+   with IPOPT (warm-started from its previous iterate), the consensus of a block is the mean of
+   its holders' ``v + Y / rho``, and each holder's Y moves by ``rho (v - z)``. It stops when the
+   largest primal residual ``|v - z|`` and dual residual ``rho |z - z_previous|`` are both
+   below ``tol``, or after ``max_iter`` iterations.
+3. **Safety.** In the hard form the agents' own plans are checked pairwise by the exact distance
+   between their footprints (:func:`~swarmpc.model.footprint.rectangle_distance`) at every
+   constrained step. The agents of a pair closer than d_min are repaired one after the other in
+   index order: each solves its local problem again with its copies pinned to its neighbours'
+   current plans, so its answer keeps d_min from all of them by the OBCA rows; every pair with a
+   repaired agent is then certified by the later of its two repairs. An agent whose repair fails
+   brakes (:func:`~swarmpc.solvers.base.braking_plan`: a car cannot side-step), which is counted
+   as a fallback.
+
+The local solves of an iteration are independent; this solver runs them one after the other in
+the calling process and reports the step's critical path as if each agent had its own core (per
+iteration the slowest local solve, plus the coordinator's work).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from swarmpc.config import SolverConfig
+from swarmpc.formulation.footprint_certificates import PolytopeFootprintCertifier, rectangle_pair_certificates
+from swarmpc.formulation.footprint_local import (
+    NeighbourKind,
+    build_footprint_local,
+    consensus_block,
+    pair_first_step,
+    slot_size,
+)
+from swarmpc.formulation.footprint_ocp import FootprintAgent, FootprintSwarm
+from swarmpc.formulation.nlp import CompiledNLP, NLPSolution, shift_blocks
+from swarmpc.model.footprint import rectangle_distance
+from swarmpc.solvers.base import PlanStep, braking_plan
+from swarmpc.solvers.dual_seed import pair_seed
+from swarmpc.solvers.footprint_central import nearest_heading, straight_guess
+from swarmpc.solvers.guesses import agent_guess_blocks
+
+__all__ = ["FootprintADMMOptions", "FootprintADMMSolver", "coupled_pairs", "footprint_local_guess", "plan_violations"]
+
+SAFETY_TOLERANCE = 1e-6
+"""[m] a planned pair closer than d_min by more than this is repaired (IPOPT meets its rows to
+within its own tolerance, far below)."""
+
+
+@dataclass(frozen=True)
+class FootprintADMMOptions:
+    """The parameters of :class:`FootprintADMMSolver` (a scenario's ``solver`` section)."""
+
+    rho: float = 10.0
+    max_iter: int = 100
+    tol: float = 1e-3
+    coupling_margin: float = 0.5
+
+    @classmethod
+    def from_options(cls, options: SolverConfig) -> FootprintADMMOptions:
+        margin = options.coupling_margin
+        return cls(options.rho, options.max_iter, options.tol, 0.5 if margin is None else margin)
+
+
+def _euclidean_reach(agent: FootprintAgent, state: np.ndarray) -> float:
+    """A bound on how far any point of the agent's footprint moves within the horizon."""
+    s = agent.settings
+    reach = float(s.model.reach_bound(np.asarray(state, float), s.horizon, s.accel, s.speed))
+    return reach if agent.oriented else reach * np.sqrt(2.0)
+
+
+def coupled_pairs(swarm: FootprintSwarm, states: np.ndarray, margin: float) -> list[tuple[int, int]]:
+    """The pairs (i, j), i < j, whose footprints may come within d_min + ``margin`` of each other
+    within the horizon (module docstring, step 1)."""
+    agents = swarm.agents
+    poses = [agent.poses(np.asarray(states[i], float)) for i, agent in enumerate(agents)]
+    reach = [_euclidean_reach(agent, states[i]) for i, agent in enumerate(agents)]
+    out = []
+    for i, j in swarm.pairs:
+        gap = float(rectangle_distance(poses[i], agents[i].size, poses[j], agents[j].size))
+        if gap <= reach[i] + reach[j] + swarm.settings.d_min + margin:
+            out.append((i, j))
+    return out
+
+
+def _car_obstacle_blocks(own: FootprintAgent, states: np.ndarray) -> dict[str, np.ndarray]:
+    """Closed-form best certificates of a car's guessed footprint against each obstacle."""
+    s, blocks = own.settings, {}
+    poses = own.poses(states[s.first_constrained_step:])
+    for n, (G, g) in enumerate(s.obstacles):
+        certificate = PolytopeFootprintCertifier(G, g)(poses, own.size)
+        blocks[f"L_o{n}"], blocks[f"Lo{n}_"] = certificate.lam_ij.T, certificate.lam_ji.T
+        if s.collision == "soft":
+            blocks[f"A_o{n}"] = np.maximum(0.0, s.d_min - certificate.value)[None, :]
+    return blocks
+
+
+def footprint_local_guess(
+    own: FootprintAgent, states: np.ndarray, neighbours: Sequence[FootprintAgent], copies: Sequence[np.ndarray],
+) -> dict[str, np.ndarray]:
+    """The primal start of a local problem: the agent's state guess (N+1, n), its copies (rows, N)
+    and every certificate from the guessed poses (closed-form best certificates; the point form's
+    seeds between point agents)."""
+    states = np.asarray(states, float)
+    point = agent_guess_blocks("", states, own.obstacle_settings, seed_duals=not own.oriented)
+    if own.oriented:
+        point.update(_car_obstacle_blocks(own, states))
+    s = own.settings
+    for slot, (other, copy) in enumerate(zip(neighbours, copies, strict=True)):
+        first, copy = pair_first_step(own, other), np.asarray(copy, float)
+        point[f"C{slot}"] = copy
+        own_pose = own.poses(states[first:])
+        other_pose = np.zeros_like(own_pose)
+        other_pose[:, : copy.shape[0]] = copy[:, first - 1:].T
+        if not (own.oriented or other.oriented):
+            point.update(pair_seed(f"p{slot}", own_pose[:, :2] - other_pose[:, :2], own.body + other.body, s))
+            continue
+        certificate = rectangle_pair_certificates(own_pose, own.size, other_pose, other.size)
+        point[f"Li{slot}"], point[f"Lj{slot}"] = certificate.lam_ij.T, certificate.lam_ji.T
+        if s.collision == "soft":
+            point[f"Ap{slot}"] = np.maximum(0.0, s.d_min - certificate.value)[None, :]
+    return point
+
+
+def plan_violations(swarm: FootprintSwarm, plans: Sequence[np.ndarray]) -> list[tuple[int, int]]:
+    """The pairs whose planned footprints (states (N+1, n) per agent) come closer than d_min
+    (less :data:`SAFETY_TOLERANCE`) at a constrained step, by the exact rectangle distance."""
+    agents, d_min = swarm.agents, swarm.settings.d_min
+    out = []
+    for i, j in swarm.pairs:
+        first = swarm.pair_first_step(i, j)
+        gap = rectangle_distance(agents[i].poses(plans[i][first:]), agents[i].size,
+                                 agents[j].poses(plans[j][first:]), agents[j].size)
+        if float(np.min(gap)) < d_min - SAFETY_TOLERANCE:
+            out.append((i, j))
+    return out
+
+
+@dataclass
+class _AgentState:
+    """One agent's side of a step: its neighbours, problem, last answer and multipliers."""
+
+    neighbours: tuple[int, ...]
+    problem: CompiledNLP
+    solution: NLPSolution | None = None
+    own_y: np.ndarray | None = None
+    copy_y: dict[int, np.ndarray] = field(default_factory=dict)
+    seconds: float = 0.0
+    failures: int = 0
+
+    def block(self, agent: FootprintAgent) -> np.ndarray:
+        assert self.solution is not None
+        return consensus_block(agent, self.solution.x["X"].T)
+
+    def copy(self, j: int) -> np.ndarray:
+        assert self.solution is not None
+        return np.asarray(self.solution.x[f"C{self.neighbours.index(j)}"])
+
+
+@dataclass
+class _Step:
+    """What one MPC step's iterations share: the measured states, goals and the consensus."""
+
+    states: list[np.ndarray]
+    goals: list[np.ndarray]
+    z: list[np.ndarray]
+    rho: float
+    critical: float = 0.0
+    primal: list[float] = field(default_factory=list)
+    dual: list[float] = field(default_factory=list)
+
+
+class FootprintADMMSolver:
+    """Consensus ADMM over the local problems of a swarm with cars (module docstring).
+
+    A local problem is built once per agent and sequence of neighbour kinds and reused; an
+    agent's solve starts from its previous answer (shifted by one step at a new MPC step) while
+    its neighbours are the same, and from the guess otherwise.
+    """
+
+    def __init__(self, swarm: FootprintSwarm, options: FootprintADMMOptions = FootprintADMMOptions()) -> None:
+        self.swarm = swarm
+        self.options = options
+        self._problems: dict[tuple[int, tuple[NeighbourKind, ...]], CompiledNLP] = {}
+        self._agents: list[_AgentState | None] = [None] * swarm.num_agents
+
+    def _order(self, i: int, pairs: list[tuple[int, int]]) -> tuple[int, ...]:
+        """Agent i's neighbours, cars first, each kind in index order (the slot order)."""
+        agents = self.swarm.agents
+        mine = [b if a == i else a for a, b in pairs if i in (a, b)]
+        return tuple(sorted(mine, key=lambda j: (not agents[j].oriented, j)))
+
+    def _problem(self, i: int, neighbours: tuple[int, ...]) -> CompiledNLP:
+        kinds = tuple(NeighbourKind.of(self.swarm.agents[j]) for j in neighbours)
+        key = (i, kinds)
+        if key not in self._problems:
+            self._problems[key] = build_footprint_local(self.swarm.agents[i], kinds)
+        return self._problems[key]
+
+    def _start_agents(self, pairs: list[tuple[int, int]]) -> None:
+        """Every agent's state for a new step: the previous answer shifted when the neighbours
+        are unchanged, the multipliers reset."""
+        for i in range(self.swarm.num_agents):
+            neighbours, previous = self._order(i, pairs), self._agents[i]
+            state = _AgentState(neighbours, self._problem(i, neighbours))
+            if previous is not None and previous.neighbours == neighbours and previous.solution is not None:
+                state.solution = _shifted(previous.problem, previous.solution)
+            self._agents[i] = state
+
+    def _params(self, i: int, step: _Step, state: _AgentState) -> dict[str, np.ndarray]:
+        agents, rho = self.swarm.agents, step.rho
+        zeros = np.zeros_like(step.z[i])
+        params = {"x0": step.states[i], "goal": step.goals[i], "rho": np.array([[rho]]),
+                  "Z": step.z[i], "Y": zeros if state.own_y is None else state.own_y}
+        for slot, j in enumerate(state.neighbours):
+            params[f"Z{slot}"] = step.z[j]
+            params[f"Y{slot}"] = state.copy_y.get(j, np.zeros_like(step.z[j]))
+            params[f"S{slot}"] = slot_size(agents[i], agents[j])
+        return params
+
+    def _solve(self, i: int, step: _Step, guess: np.ndarray, fixed: dict[str, np.ndarray] | None = None) -> bool:
+        """Agent i's local solve; keeps the answer when it succeeds. True on success."""
+        state = self._agents[i]
+        assert state is not None
+        agents = self.swarm.agents
+        previous = state.solution
+        lam_x: np.ndarray | None = None
+        lam_g: np.ndarray | None = None
+        if previous is not None:
+            point, lam_x, lam_g = previous.x, previous.lam_x, previous.lam_g
+        else:
+            neighbours = [agents[j] for j in state.neighbours]
+            point = footprint_local_guess(agents[i], guess, neighbours, [step.z[j] for j in state.neighbours])
+        solution = state.problem.solve(self._params(i, step, state), point, lam_x, lam_g, fixed)
+        state.seconds += solution.solve_time
+        if not solution.success:
+            state.failures += 1
+            return False
+        state.solution = solution
+        return True
+
+    def _consensus(self, step: _Step) -> tuple[float, float]:
+        """The z and multiplier updates from every agent's last answer; (primal, dual) residuals."""
+        agents, rho = self._agents, step.rho
+        holders: list[list[tuple[np.ndarray, np.ndarray | None, int, int]]] = [[] for _ in agents]
+        for i, state in enumerate(agents):
+            assert state is not None and state.solution is not None
+            holders[i].append((state.block(self.swarm.agents[i]), state.own_y, i, -1))
+            for j in state.neighbours:
+                holders[j].append((state.copy(j), state.copy_y.get(j), i, j))
+        primal = dual = 0.0
+        for j, values in enumerate(holders):
+            z = np.mean([v + (0.0 if y is None else y / rho) for v, y, _, _ in values], axis=0)
+            dual = max(dual, rho * float(np.max(np.abs(z - step.z[j]))))
+            step.z[j] = z
+            for v, y, holder, owner in values:
+                primal = max(primal, float(np.max(np.abs(v - z))))
+                updated = (0.0 if y is None else y) + rho * (v - z)
+                if owner < 0:
+                    agents[holder].own_y = updated  # type: ignore[union-attr]
+                else:
+                    agents[holder].copy_y[owner] = updated  # type: ignore[union-attr]
+        return primal, dual
+
+    def _iterate(self, step: _Step, guesses: Sequence[np.ndarray]) -> int:
+        """ADMM iterations until the residuals are below ``tol``; the iteration count."""
+        options = self.options
+        for iteration in range(1, options.max_iter + 1):
+            slowest = 0.0
+            for i in range(self.swarm.num_agents):
+                state = self._agents[i]
+                assert state is not None
+                before = state.seconds
+                if not self._solve(i, step, guesses[i]) and state.solution is None:
+                    raise _NoAnswer(i)
+                slowest = max(slowest, state.seconds - before)
+            started = time.perf_counter()
+            primal, dual = self._consensus(step)
+            step.primal.append(primal)
+            step.dual.append(dual)
+            step.critical += slowest + time.perf_counter() - started
+            if primal < options.tol and dual < options.tol:
+                return iteration
+        return options.max_iter
+
+    def _repair(self, step: _Step, plans: list[np.ndarray], inputs: list[np.ndarray], fallback: np.ndarray) -> bool:
+        """Repairs the agents of every violating pair in index order (module docstring, step 3);
+        True when a repair was needed."""
+        violating = plan_violations(self.swarm, plans)
+        if not violating or self.swarm.settings.collision != "hard":
+            return False
+        for i in sorted({a for pair in violating for a in pair}):
+            state = self._agents[i]
+            assert state is not None
+            agents = self.swarm.agents
+            fixed = {f"C{slot}": consensus_block(agents[j], plans[j]) for slot, j in enumerate(state.neighbours)}
+            step.z[i] = consensus_block(agents[i], plans[i])
+            state.own_y, state.copy_y = None, {}
+            before = state.seconds
+            if self._solve(i, step, plans[i], fixed):
+                plans[i], inputs[i] = state.solution.x["X"].T, state.solution.x["U"].T  # type: ignore[union-attr]
+            else:
+                plans[i], inputs[i] = braking_plan(step.states[i], agents[i].settings)
+                fallback[i] = True
+            step.critical += state.seconds - before
+        return True
+
+    def plan(
+        self, states: Sequence[np.ndarray], goals: Sequence[np.ndarray], guesses: Sequence[np.ndarray],
+    ) -> PlanStep:
+        """One MPC step from measured ``states`` (one (n_i,) per agent) towards goal states
+        ``goals``, starting agents without a previous answer from ``guesses`` (N+1, n_i)."""
+        started = time.perf_counter()
+        swarm, m = self.swarm, self.swarm.num_agents
+        states = [np.asarray(x, float) for x in states]
+        self._start_agents(coupled_pairs(swarm, np.array(states), self.options.coupling_margin))
+        z = [consensus_block(agent, self._guess_of(i, guesses[i])) for i, agent in enumerate(swarm.agents)]
+        step = _Step(states, [np.asarray(g, float) for g in goals], z, self.options.rho)
+        fallback = np.zeros(m, bool)
+        try:
+            iterations = self._iterate(step, guesses)
+        except _NoAnswer:
+            iterations = len(step.primal)
+        plans, inputs = [], []
+        for i, state in enumerate(self._agents):
+            assert state is not None
+            if state.solution is None:
+                plan, controls = braking_plan(states[i], swarm.agents[i].settings)
+                fallback[i] = True
+            else:
+                plan, controls = state.solution.x["X"].T, state.solution.x["U"].T
+            plans.append(np.asarray(plan))
+            inputs.append(np.asarray(controls))
+        repaired = self._repair(step, plans, inputs, fallback)
+        return self._outcome(step, plans, inputs, fallback, iterations, repaired, started)
+
+    def _guess_of(self, i: int, guess: np.ndarray) -> np.ndarray:
+        """Agent i's state guess: its shifted previous answer when it has one, else ``guess``."""
+        state = self._agents[i]
+        if state is not None and state.solution is not None:
+            return np.asarray(state.solution.x["X"]).T
+        return np.asarray(guess, float)
+
+    def _outcome(
+        self, step: _Step, plans: list[np.ndarray], inputs: list[np.ndarray], fallback: np.ndarray,
+        iterations: int, repaired: bool, started: float,
+    ) -> PlanStep:
+        agents = self.swarm.agents
+        cost = sum(_stage_cost(plans[i], inputs[i], step.goals[i], agent) for i, agent in enumerate(agents))
+        slacks = [float(np.max(value)) for state in self._agents if state is not None and state.solution is not None
+                  for name, value in state.solution.x.items() if name.startswith("A") and value.size]
+        failures = sum(state.failures for state in self._agents if state is not None)
+        return PlanStep(
+            states=np.array(plans), inputs=np.array(inputs), predicted_cost=cost,
+            max_slack=max([0.0, *slacks]), wall_time=time.perf_counter() - started,
+            agent_times=np.array([state.seconds for state in self._agents if state is not None]),
+            failures=failures, fallback=fallback, admm_iterations=iterations, repaired=repaired,
+            primal_residuals=step.primal, dual_residuals=step.dual,
+            rho_history=[step.rho] * len(step.primal), critical_path=step.critical,
+        )
+
+
+class _NoAnswer(Exception):
+    """An agent's first local solve of a step failed: it has nothing to agree with."""
+
+    def __init__(self, agent: int) -> None:
+        super().__init__(f"agent {agent}: the local problem has no answer")
+        self.agent = agent
+
+
+def _shifted(problem: CompiledNLP, solution: NLPSolution) -> NLPSolution:
+    """A previous answer moved one step on (primal and multipliers), to warm-start the next step."""
+    layout_x, layout_g = problem.x_layout, problem.g_layout
+    x = shift_blocks(solution.x)
+    return NLPSolution(
+        x=x, x_vec=layout_x.pack(x),
+        lam_x=layout_x.pack(shift_blocks(layout_x.unpack(solution.lam_x))),
+        lam_g=layout_g.pack(shift_blocks(layout_g.unpack(solution.lam_g))),
+        cost=solution.cost, success=True, status=solution.status, iterations=0, solve_time=0.0,
+    )
+
+
+def _stage_cost(states: np.ndarray, inputs: np.ndarray, goal: np.ndarray, agent: FootprintAgent) -> float:
+    """The quadratic cost of one agent's plan (:func:`~swarmpc.formulation.ocp.quadratic_cost`)."""
+    s = agent.settings
+    err = np.asarray(states, float) - np.asarray(goal, float)
+    stage = np.einsum("ki,ij,kj->", err[:-1], s.Q, err[:-1]) + np.einsum("ki,ij,kj->", inputs, s.R, inputs)
+    return float(stage + err[-1] @ s.Qf @ err[-1])
+
+
+class FootprintADMMMPCSolver:
+    """:class:`FootprintADMMSolver` behind the closed loop's
+    :class:`~swarmpc.solvers.base.MPCSolver` protocol (stacked (M, ...) arrays; a car's goal
+    heading taken within pi of its heading, :func:`~swarmpc.solvers.footprint_central.nearest_heading`)."""
+
+    def __init__(self, solver: FootprintADMMSolver) -> None:
+        self.solver = solver
+
+    def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray | None) -> PlanStep:
+        agents = self.solver.swarm.agents
+        targets = [nearest_heading(goals[i], states[i]) if agent.oriented else np.asarray(goals[i], float)
+                   for i, agent in enumerate(agents)]
+        if guess is None:
+            guess = np.array([straight_guess(agent, states[i], targets[i]) for i, agent in enumerate(agents)])
+        return self.solver.plan(list(states), targets, list(guess))
