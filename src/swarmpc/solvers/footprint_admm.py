@@ -70,6 +70,8 @@ class FootprintADMMOptions:
     max_iter: int = 100
     tol: float = 1e-3
     coupling_margin: float = 0.5
+    carry_multipliers: bool = True
+    """Start a step's multipliers from the previous step's, shifted (as the plans are)."""
 
     @classmethod
     def from_options(cls, options: SolverConfig) -> FootprintADMMOptions:
@@ -198,6 +200,8 @@ class FootprintADMMSolver:
         self.options = options
         self._problems: dict[tuple[int, tuple[NeighbourKind, ...]], CompiledNLP] = {}
         self._agents: list[_AgentState | None] = [None] * swarm.num_agents
+        self._z: list[np.ndarray] | None = None
+        """The last step's consensus, to start the next step's from (shifted)."""
 
     def _order(self, i: int, pairs: list[tuple[int, int]]) -> tuple[int, ...]:
         """Agent i's neighbours, cars first, each kind in index order (the slot order)."""
@@ -214,12 +218,16 @@ class FootprintADMMSolver:
 
     def _start_agents(self, pairs: list[tuple[int, int]]) -> None:
         """Every agent's state for a new step: the previous answer shifted when the neighbours
-        are unchanged, the multipliers reset."""
+        are unchanged, and the multipliers shifted with it when ``carry_multipliers``
+        (otherwise reset)."""
         for i in range(self.swarm.num_agents):
             neighbours, previous = self._order(i, pairs), self._agents[i]
             state = _AgentState(neighbours, self._problem(i, neighbours))
             if previous is not None and previous.neighbours == neighbours and previous.solution is not None:
                 state.solution = _shifted(previous.problem, previous.solution)
+                if self.options.carry_multipliers:
+                    state.own_y = None if previous.own_y is None else _shift(previous.own_y)
+                    state.copy_y = {j: _shift(y) for j, y in previous.copy_y.items()}
             self._agents[i] = state
 
     def _params(self, i: int, step: _Step, state: _AgentState) -> dict[str, np.ndarray]:
@@ -246,7 +254,11 @@ class FootprintADMMSolver:
         else:
             neighbours = [agents[j] for j in state.neighbours]
             point = footprint_local_guess(agents[i], guess, neighbours, [step.z[j] for j in state.neighbours])
-        solution = state.problem.solve(self._params(i, step, state), point, lam_x, lam_g, fixed)
+        params = self._params(i, step, state)
+        if fixed:  # a repair: the copies are pinned, and the own block is drawn to the agent's own plan
+            own = consensus_block(agents[i], guess)
+            params.update({"Z": own, "Y": np.zeros_like(own)})
+        solution = state.problem.solve(params, point, lam_x, lam_g, fixed)
         state.seconds += solution.solve_time
         if not solution.success:
             state.failures += 1
@@ -309,8 +321,6 @@ class FootprintADMMSolver:
             assert state is not None
             agents = self.swarm.agents
             fixed = {f"C{slot}": consensus_block(agents[j], plans[j]) for slot, j in enumerate(state.neighbours)}
-            step.z[i] = consensus_block(agents[i], plans[i])
-            state.own_y, state.copy_y = None, {}
             before = state.seconds
             if self._solve(i, step, plans[i], fixed):
                 plans[i], inputs[i] = state.solution.x["X"].T, state.solution.x["U"].T  # type: ignore[union-attr]
@@ -329,8 +339,7 @@ class FootprintADMMSolver:
         swarm, m = self.swarm, self.swarm.num_agents
         states = [np.asarray(x, float) for x in states]
         self._start_agents(coupled_pairs(swarm, np.array(states), self.options.coupling_margin))
-        z = [consensus_block(agent, self._guess_of(i, guesses[i])) for i, agent in enumerate(swarm.agents)]
-        step = _Step(states, [np.asarray(g, float) for g in goals], z, self.options.rho)
+        step = _Step(states, [np.asarray(g, float) for g in goals], self._first_consensus(guesses), self.options.rho)
         fallback = np.zeros(m, bool)
         try:
             iterations = self._iterate(step, guesses)
@@ -346,8 +355,21 @@ class FootprintADMMSolver:
                 plan, controls = state.solution.x["X"].T, state.solution.x["U"].T
             plans.append(np.asarray(plan))
             inputs.append(np.asarray(controls))
+        self._z = step.z
         repaired = self._repair(step, plans, inputs, fallback)
         return self._outcome(step, plans, inputs, fallback, iterations, repaired, started)
+
+    def _first_consensus(self, guesses: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """A step's first consensus: the last step's shifted for agents that carry their
+        multipliers, else the block of the agent's shifted answer or guess."""
+        out = []
+        for i, agent in enumerate(self.swarm.agents):
+            state = self._agents[i]
+            if self._z is not None and state is not None and state.own_y is not None:
+                out.append(_shift(self._z[i]))
+            else:
+                out.append(consensus_block(agent, self._guess_of(i, guesses[i])))
+        return out
 
     def _guess_of(self, i: int, guess: np.ndarray) -> np.ndarray:
         """Agent i's state guess: its shifted previous answer when it has one, else ``guess``."""
@@ -381,6 +403,11 @@ class _NoAnswer(Exception):
     def __init__(self, agent: int) -> None:
         super().__init__(f"agent {agent}: the local problem has no answer")
         self.agent = agent
+
+
+def _shift(block: np.ndarray) -> np.ndarray:
+    """A (rows, N) block one step on: moved back in time, the last column repeated."""
+    return np.concatenate([block[:, 1:], block[:, -1:]], axis=1)
 
 
 def _shifted(problem: CompiledNLP, solution: NLPSolution) -> NLPSolution:
