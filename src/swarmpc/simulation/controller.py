@@ -75,13 +75,17 @@ def deadlock_resolver(scn: Scenario, factory: DeadlockFactory = DeadlockResolver
     """The scenario's deadlock resolver: the rules of its ``deadlock`` section, agents kept the
     planner's clearance apart, detours kept inside the workspace, jitter seeded by the scenario.
 
-    A swarm with cars gets the rules switched off: a detour is a point to steer to at rest, which
-    a car (that cannot side-step, and whose goal is a pose) is not yet given."""
-    section = scn.deadlock.model_copy(update={"enabled": False}) if scn.has_cars else scn.deadlock
-    return factory(
-        scn.num_agents, scn.dim, policy=DeadlockPolicy.from_config(section), seed=scn.seed,
-        clearance=planner_delta(scn) + scn.d_min, bounds=scn.bounds(),
-    )
+    In a swarm with cars each agent is read through its own model (a car's detours are poses it
+    drives to forwards, :func:`~swarmpc.simulation.deadlock.rest_state`) and the clearance covers
+    the longest footprint."""
+    policy = DeadlockPolicy.from_config(scn.deadlock)
+    if not scn.has_cars:
+        return factory(scn.num_agents, scn.dim, policy=policy, seed=scn.seed,
+                       clearance=planner_delta(scn) + scn.d_min, bounds=scn.bounds())
+    models = tuple(scn.agent_models())
+    longest = max(max(getattr(m, "footprint", (0.0,))) for m in models)
+    return factory(scn.num_agents, scn.dim, policy=policy, seed=scn.seed,
+                   clearance=np.maximum(planner_delta(scn), longest) + scn.d_min, bounds=scn.bounds(), models=models)
 
 
 def close_solver(solver: Any) -> None:

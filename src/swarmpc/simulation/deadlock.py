@@ -51,7 +51,11 @@ the rules off). Why each rule exists: docs/design/reliability.md; the runs that 
 changed: docs/lab/admm.md.
 
 The resolver reads states through the agents' :class:`~swarmpc.model.agent_model.AgentModel`
-(positions, velocities, detour goals as states at rest), so it works for any state layout.
+(positions, velocities, detour goals as states at rest), so it works for any state layout, one
+model per agent in a mixed swarm. A model with a heading (a car, which cannot side-step) gets
+every detour and keep-right goal as a pose at rest *facing the way it is sent*
+(:func:`rest_state`): the car drives forwards there along an arc and turns back to its goal
+afterwards, instead of being asked to slide sideways.
 """
 
 from __future__ import annotations
@@ -149,21 +153,34 @@ def right_turn(direction: np.ndarray, angle: float) -> np.ndarray:
     return out
 
 
+def rest_state(model: AgentModel, position: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """A goal state at rest at ``position``; a model with a heading (``heading_row``) faces
+    ``direction`` there, so that it reaches the point driving forwards."""
+    state = model.state_at(np.asarray(position, float))
+    row = getattr(model, "heading_row", None)
+    if row is not None:
+        state[..., row] = np.arctan2(direction[..., 1], direction[..., 0])
+    return state
+
+
 class DeadlockResolver:
     """Tracks stalled agents and hands out the goals the MPC should use this step.
 
     ``model`` is the agents' model, whose states :meth:`goals` reads and writes; None: the double
     integrator of ``dim`` (only its state layout is used, which does not depend on dt).
+    ``models``: one model per agent instead (a swarm with cars); their positions share the
+    state's first ``dim`` entries.
     """
 
     def __init__(
         self, num_agents: int, dim: int, policy: DeadlockPolicy = DeadlockPolicy(), seed: int = 0,
         clearance: float | np.ndarray = 0.35, bounds: tuple[np.ndarray, np.ndarray] | None = None,
-        model: AgentModel | None = None,
+        model: AgentModel | None = None, models: tuple[AgentModel, ...] | None = None,
     ) -> None:
         self.policy = policy
         self.dim = dim
         self.model = model if model is not None else make_model("double_integrator", dim, 1.0)
+        self.models = models if models is not None else (self.model,) * num_agents
         self.bounds = bounds
         self._lifts = np.zeros(num_agents, int)
         self._waiting = np.zeros(num_agents, int)
@@ -312,8 +329,9 @@ class DeadlockResolver:
         p, model = self.policy, self.model
         if not p.enabled:
             return goals.copy()
-        positions, speeds = model.position(states), np.linalg.norm(model.velocity(states), axis=1)
-        goal_positions = model.position(goals)
+        positions, goal_positions = model.position(states), model.position(goals)
+        velocities = np.array([m.velocity(x) for m, x in zip(self.models, states, strict=True)])
+        speeds = np.linalg.norm(velocities, axis=1)
         to_goal = goal_positions - positions
         distance = np.linalg.norm(to_goal, axis=1)
         blocked = self.blocked(positions, goal_positions)
@@ -350,7 +368,8 @@ class DeadlockResolver:
                 hold = int(round(hold * self._rng.uniform(1.0, 1.0 + p.stretch)))
             self._repeats[i] += 1
             direction = right_turn(to_goal[i] / distance[i], np.radians(angle))
-            target = model.state_at(positions[i] + p.detour * min(1.0, distance[i]) * direction)  # at rest
+            waypoint = positions[i] + p.detour * min(1.0, distance[i]) * direction
+            target = rest_state(self.models[i], waypoint, direction)  # at rest
             self._detour_goal[int(i)] = target
             self._detour_left[i] = hold
             self._stalled[i] = 0
@@ -368,8 +387,8 @@ class DeadlockResolver:
         """Turn the goals of agents far from their goals in traffic (:meth:`in_traffic`)
         ``keep_right_deg`` to the right about the agent (in place; agents on a detour or waiting in
         a knot keep theirs)."""
-        p, model = self.policy, self.model
+        p = self.policy
         veer = traffic & (distance > p.approach_radius) & (self._detour_left == 0) & (self._waiting == 0)
         for i in np.flatnonzero(veer):
             turned = right_turn(to_goal[i], np.radians(self.keep_right_deg))
-            out[i] = model.state_at(positions[i] + turned)
+            out[i] = rest_state(self.models[i], positions[i] + turned, turned)
