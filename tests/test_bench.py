@@ -23,6 +23,8 @@ from swarmpc.bench import (
     step_growth_interval,
     write_report,
 )
+from swarmpc.config import ScenarioError
+from swarmpc.scenarios import builtin_scenario
 
 
 def outcome(family: str, agents: int, seed: int, method: str, cost: float, reached: bool = True,
@@ -361,3 +363,129 @@ def test_run_bench_states_its_settings_and_refuses_bad_ones_before_running(tmp_p
         run_bench(tmp_path / "bad", families=["random"], sizes=[4], seeds=1, jobs=1, central_max_agents=0,
                   case_runner=stand_in, settings={"weights.Q": "heavy"})
     assert len(ran) == 1 and not (tmp_path / "bad").exists()
+
+
+# --- the car family ---------------------------------------------------------------------------------
+def car_outcome(case: BenchCase, gap: float = 0.3) -> CaseOutcome:
+    made = outcome(case.family, case.agents, case.seed, case.method, 100.0)
+    return CaseOutcome(**{**made.__dict__, "case": case, "min_footprint_distance": gap,
+                          "critical_path_ms": [10.0, 20.0], "makespan_s": 8.0})
+
+
+def test_crossing_cases_are_the_builtin_run_by_the_benchmark_method():
+    cases = plan_cases(["crossing"], [4, 8], seeds=3, executor="serial", workers=None, budget_s=60.0,
+                       central_max_agents=16)
+    assert [(c.agents, c.seed, c.method) for c in cases] == [
+        (4, 0, "admm"), (4, 0, "centralized"), (8, 0, "admm"), (8, 0, "centralized")]  # deterministic: one seed
+    central = cases[3].scenario()
+    builtin = builtin_scenario("crossing", agents=8)
+    assert central.has_cars and central.num_agents == 8 and central.solver.method == "centralized"
+    assert central.start_states().tolist() == builtin.start_states().tolist()
+    assert central.stop == builtin.stop and central.weights == builtin.weights  # the built-in's own settings
+    assert cases[2].scenario().solver.method == "admm"
+    assert [c.method for c in plan_cases(["crossing"], [4], 1, "serial", None, 60.0, 16,
+                                         methods=("centralized",))] == ["centralized"]
+    with pytest.raises(ValueError, match="^methods: unknown blob"):
+        plan_cases(["crossing"], [4], 1, "serial", None, 60.0, 16, methods=("blob",))
+
+
+def test_sizes_the_crossing_does_not_take_are_refused_before_anything_runs(tmp_path):
+    with pytest.raises(ValueError, match="^sizes: family crossing takes multiples of 4, got 6$"):
+        plan_cases(["circle", "crossing"], [4, 6], 1, "serial", None, 60.0, 16)
+    assert len(plan_cases(["circle"], [6], 1, "serial", None, 60.0, 16)) == 2  # the point families take any M
+
+    def never(case: BenchCase, runs_dir: object) -> CaseOutcome:
+        raise AssertionError("nothing may run")
+
+    with pytest.raises(ValueError, match="^sizes: "):
+        run_bench(tmp_path / "b", families=["crossing"], sizes=[2], jobs=1, case_runner=never)
+    assert not (tmp_path / "b").exists()
+    from conftest import run_cli
+
+    done = run_cli("bench", "--families", "circle,crossing", "--sizes", "4,10", "--out", str(tmp_path / "c"))
+    (line,) = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and line.endswith("--sizes: family crossing takes multiples of 4, got 10")
+    assert not (tmp_path / "c").exists()
+
+
+def test_a_centralised_crossing_bench_reports_per_agent_compute(tmp_path):
+    markdown, data = run_bench(tmp_path, families=["crossing"], sizes=[4], seeds=1, jobs=1, max_steps=5,
+                               methods=("centralized",))
+    report = json.loads(data.read_text())
+    (row,) = report["rows"]
+    assert (row["family"], row["agents"], row["local"], row["runs"]) == ("crossing", 4, "centralized", 1)
+    for key in ("agent_ms_median", "agent_ms_p95", "agent_ms_p99", "critical_path_ms_median", "critical_path_ms_p99",
+                "step_ms_median", "step_ms_p95", "central_step_ms_median", "wall_s_per_run_median",
+                "min_footprint_distance_m"):
+        assert isinstance(row[key], float) and np.isfinite(row[key]) and row[key] > 0, key
+    assert row["collision_free_rate"] == 1.0 and row["min_separation_ratio"] is None  # footprints, not boxes
+    (run,) = report["runs"]
+    assert run["steps"] == 5 and run["collisions"] == 0 and len(run["agent_step_ms"]) == 4 * 5
+    assert run["min_footprint_distance"] == pytest.approx(row["min_footprint_distance_m"])
+    assert report["failed"] == []
+    table = markdown.read_text()
+    assert "| crossing | 4 | centralized | 1 | 0% | 100% |" in table
+    assert table.splitlines()[4].endswith("| planes per agent | min footprint gap m |")
+
+
+@pytest.mark.loop
+def test_a_whole_centralised_crossing_run_reports_its_makespan(tmp_path):
+    _, data = run_bench(tmp_path, families=["crossing"], sizes=[4], seeds=1, jobs=1, methods=("centralized",))
+    (row,) = json.loads(data.read_text())["rows"]
+    assert row["all_reached_rate"] == 1.0 and row["collision_free_rate"] == 1.0
+    assert row["makespan_s_median"] > 0 and row["agent_ms_p99"] > 0 and row["critical_path_ms_p99"] > 0
+
+
+def test_a_refused_admm_case_is_listed_with_its_reason_and_the_centralised_row_stays(tmp_path):
+    def refusing(case: BenchCase, runs_dir: object) -> CaseOutcome:
+        if case.method == "admm":
+            raise ScenarioError("solver.method: admm does not take car agents yet; use centralized")
+        return car_outcome(case)
+
+    with pytest.raises(RuntimeError) as failed:
+        run_bench(tmp_path, families=["crossing"], sizes=[4, 8], seeds=1, jobs=1, case_runner=refusing)
+    message = str(failed.value)
+    assert "\n" not in message and message.startswith("2 of 4 bench cases failed")
+    assert "crossing-M4-seed0-admm: ScenarioError: solver.method: admm does not take car agents yet" in message
+    report = json.loads((tmp_path / "bench.json").read_text())
+    assert report["failed"] == [
+        f"crossing-M{m}-seed0-admm: ScenarioError: solver.method: admm does not take car agents yet; use centralized"
+        for m in (4, 8)]
+    assert [(r["agents"], r["local"], r["runs"]) for r in report["rows"]] == [(4, "centralized", 1),
+                                                                              (8, "centralized", 1)]
+    assert all(r["agent_ms_p99"] is not None and r["critical_path_ms_p99"] is not None for r in report["rows"])
+    assert all(r["makespan_s_median"] == 8.0 and r["cost_gap_pct_median"] is None for r in report["rows"])
+    table = (tmp_path / "bench.md").read_text()
+    assert "2 of 4 runs" in table and "Failed, left out of the table (2):" in table
+    assert "* crossing-M8-seed0-admm: ScenarioError: solver.method: admm" in table
+    assert load_outcomes(tmp_path) == [car_outcome(BenchCase("crossing", m, 0, "centralized", budget_s=600.0))
+                                       for m in (4, 8)]  # the footprint gap survives the JSON
+
+
+def test_point_swarm_tables_have_no_footprint_column_and_car_rows_sort_last():
+    point = outcome("circle", 4, 0, "admm", 1.0)
+    assert "footprint" not in markdown_table(aggregate([point]))
+    cars = [car_outcome(BenchCase("crossing", 4, 0, method)) for method in ("admm", "centralized")]
+    rows = aggregate([cars[0], point, cars[1]])
+    assert [(r["family"], r["local"]) for r in rows] == [("circle", "ipopt"), ("crossing", "ipopt")]
+    assert rows[1]["min_footprint_distance_m"] == pytest.approx(0.3) and rows[1]["min_separation_ratio"] is None
+    assert rows[1]["cost_gap_pct_median"] == pytest.approx(0.0)  # ADMM against the centralised run, as for points
+    lines = markdown_table(rows).splitlines()
+    assert lines[2].endswith("| - |") and lines[3].endswith("| 0.300 |")
+
+
+def test_a_case_its_validation_refuses_fails_with_its_reason_and_the_others_run(tmp_path):
+    """A local step the car family does not take (the QP local step needs a linear model): the real
+    case fails in one line, settings are not blamed for it, and the centralised run still reports."""
+    with pytest.raises(RuntimeError, match=r"^1 of 2 bench cases failed .* crossing-M4-seed0-admm-qp: "):
+        run_bench(tmp_path, families=["crossing"], sizes=[4], seeds=1, jobs=1, max_steps=2, locals_=("qp",),
+                  settings={"weights.R": 0.5})
+    report = json.loads((tmp_path / "bench.json").read_text())
+    (failure,) = report["failed"]
+    assert failure.startswith("crossing-M4-seed0-admm-qp: ScenarioError: solver.local: ") and "\n" not in failure
+    (row,) = report["rows"]
+    assert (row["local"], row["runs"]) == ("centralized", 1) and row["agent_ms_median"] > 0
+    assert report["runs"][0]["case"]["settings"] == [["weights.R", 0.5]]
+    with pytest.raises(ValueError, match="^set: "):  # a bad setting is still refused before anything runs
+        run_bench(tmp_path / "bad", families=["crossing"], sizes=[4], seeds=1, jobs=1, settings={"weights.R": -1})
+    assert not (tmp_path / "bad").exists()

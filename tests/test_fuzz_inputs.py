@@ -115,7 +115,7 @@ def takes(scenario: str, option: str) -> bool:
             or option.removeprefix("--") in builtin_parameters(scenario))
 
 
-CAR_BUILTINS = {"intersection", "mixed"}
+CAR_BUILTINS = {"intersection", "mixed", "crossing", "parking"}
 CAR_REFUSALS = {("--plant", "mujoco"), ("--executor", "thread"), ("--executor", "process"), ("--executor", "ray")}
 """What a swarm with car agents refuses: the MuJoCo plant does not take cars, and its solvers run
 in the calling process."""

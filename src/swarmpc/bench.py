@@ -13,6 +13,18 @@ other, so that the two local steps are measured on the machine in the same state
 then has a row per local step, with the local solves the QP local step handed to IPOPT.
 Numbers are wall-clock measurements on whatever machine runs it: read them as such.
 
+Car family, never run by default: ``crossing`` (the built-in of that name with its own weights,
+limits and tolerances: M cars, M / 4 queued on each arm of a four-way crossing, all going straight
+across). Its sizes are multiples of 4; another size is refused before anything runs. It runs with
+the same methods as the others (ADMM per local step, centralised up to ``central_max_agents``); a
+case the scenario validation refuses fails like any failing case, with its one-line reason. Its
+collisions and its smallest gap between two cars come from the exact distance between the rotated
+footprints (:func:`swarmpc.simulation.metrics.car_safety`), so its rows give that gap [m] in a
+column of its own (shown when a row has one) instead of ``min sep/Δ``. A size run centralised only
+(no ADMM run measured, e.g. every ADMM case failed) has one row of its centralised runs, local step
+``centralized``, with the same compute columns (a centralised step's per-agent compute is its
+solve split evenly over the agents, its critical path the whole solve).
+
 Closed-loop quality (:mod:`swarmpc.simulation.quality`): each run's makespan and largest overshoot,
 and for an ADMM run that brought every agent to its goal, the interaction ratio, its makespan over
 the latest of its agents' lone-agent times (each agent simulated alone, same scenario and
@@ -29,7 +41,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import closing
-from dataclasses import MISSING, asdict, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, fields, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -41,18 +53,27 @@ from swarmpc.config import Scenario, SolverConfig, scenario_from_dict
 from swarmpc.model.geometry import body_separation_ratio, count_body_collisions
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.loop import StopFlag, simulate
-from swarmpc.simulation.metrics import final_goal_distance
+from swarmpc.simulation.metrics import car_safety, final_goal_distance
 from swarmpc.simulation.quality import interaction_ratio, time_to_goal
 from swarmpc.simulation.results import write_run
 from swarmpc.solvers.executors import Executor, available_cores, make_executor
 
-FAMILIES = ("circle", "sphere", "random", "spread")
+FAMILIES = ("circle", "sphere", "random", "spread", "crossing")
 SEEDED_FAMILIES = ("random", "spread")
 DEFAULT_FAMILIES = ("circle", "sphere", "random")
+CAR_FAMILIES = ("crossing",)
+"""The families of cars: each is the built-in scenario of its name, with its own settings."""
+SIZE_MULTIPLES: Mapping[str, int] = MappingProxyType({"crossing": 4})
+"""Families whose swarm sizes must be multiples of a number (``crossing``: M / 4 cars per arm)."""
 FULL_SIZES = (4, 8, 16, 32, 64)
 QUICK_SIZES = (4, 8)
+METHODS = ("admm", "centralized")
+"""The methods a case runs (``solver.method``): ADMM, and the centralised reference."""
 LOCAL_STEPS = ("ipopt", "qp")
 """The ADMM agents' local steps a case can use (``solver.local``)."""
+CENTRAL_ROW = "centralized"
+"""The local step (``local``) of a report row of centralised runs only: a size at which no ADMM
+run was measured (:func:`aggregate`)."""
 DEFAULT_LOCAL: str = SolverConfig.model_fields["local"].default
 """The local step of the benchmark's scenarios (a scenario's ``solver.local`` unless it sets one),
 also that of a ``bench.json`` run written before cases recorded theirs."""
@@ -83,6 +104,8 @@ class BenchCase:
         """The case's scenario (built-in generators; see the module docstring)."""
         if self.family in SEEDED_FAMILIES:
             scn = builtin_scenario(self.family, agents=self.agents, dim=3, seed=self.seed)
+        elif self.family in CAR_FAMILIES:
+            scn = builtin_scenario(self.family, agents=self.agents, seed=self.seed)
         else:
             scn = builtin_scenario("circle", agents=self.agents, dim=2 if self.family == "circle" else 3)
             scn = scn.with_updates(**{"limits.accel": 1.0, "stop.goal_tolerance": 0.1, "seed": self.seed})
@@ -154,6 +177,10 @@ class CaseOutcome:
     local_fallbacks: int | None = None
     """Local solves the QP local step failed and IPOPT answered instead (``summary.json``
     ``local_fallbacks``; 0 on the IPOPT local step); None in a report written before it was recorded."""
+    min_footprint_distance: float | None = None
+    """Smallest exact distance between two agents' footprints over the run [m] (a swarm with cars;
+    None otherwise). ``min_separation_ratio`` of such a run is that of ``summary.json``, between
+    the body boxes around the agents' reference points, and the table does not show it."""
 
 
 
@@ -181,6 +208,10 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
     positions = result.states[:, :, :d]
     collisions = count_body_collisions(positions, scn.bodies)
     separation = float(body_separation_ratio(positions, scn.bodies).min()) if scn.num_agents > 1 else float("inf")
+    footprint_gap = None
+    if scn.has_cars:  # the exact distance between the rotated footprints, not boxes around the reference points
+        safety = car_safety(scn, result.states)
+        collisions, footprint_gap = safety["collisions"], safety["min_footprint_distance"]
     records = result.records
     return CaseOutcome(
         case=case,
@@ -207,6 +238,7 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         overshoot_max_m=max(summary["overshoot_m"], default=None),
         lone_makespan_s=None if lone is None or np.isnan(lone).any() else float(lone.max()),
         interaction_ratio=None if lone is None else interaction_ratio(summary["makespan_s"], lone),
+        min_footprint_distance=footprint_gap,
     )
 
 
@@ -245,24 +277,42 @@ def plan_cases(
     families: Iterable[str], sizes: Iterable[int], seeds: int, executor: str, workers: int | None,
     budget_s: float, central_max_agents: int, max_steps: int | None = None, first_seed: int = 0,
     plane_margin: float | None = None, locals_: Sequence[str] = (DEFAULT_LOCAL,),
-    settings: tuple[tuple[str, Any], ...] = (),
+    settings: tuple[tuple[str, Any], ...] = (), methods: Sequence[str] = METHODS,
 ) -> list[BenchCase]:
-    """Every case of the benchmark; the circle and sphere swaps are deterministic (one seed).
-    The random and spread families run seeds ``first_seed`` … ``first_seed + seeds - 1``, so a long
-    study can be split over machines or separate invocations without repeating a seed. Each ADMM case runs once
-    per local step of ``locals_``, one right after the other (so that they meet the machine in the
-    same state); the centralised reference runs once. ``settings`` are set on every case's scenario."""
+    """Every case of the benchmark; the circle, sphere and crossing families are deterministic
+    (one seed). The random and spread families run seeds ``first_seed`` … ``first_seed + seeds - 1``,
+    so a long study can be split over machines or separate invocations without repeating a seed.
+    Each ADMM case runs once per local step of ``locals_``, one right after the other (so that they
+    meet the machine in the same state); the centralised reference runs once. ``settings`` are set
+    on every case's scenario. ``methods`` leaves out ADMM or the centralised runs (a study of one
+    method). ValueError (one line) for a size a family does not take (:data:`SIZE_MULTIPLES`)."""
+    families, sizes = tuple(families), tuple(sizes)
     _check_locals(locals_)
+    _check_sizes(families, sizes)
+    unknown = sorted(set(methods) - set(METHODS))
+    if unknown or not methods:
+        raise ValueError(f"methods: {'unknown ' + ', '.join(unknown) if unknown else 'none given'} "
+                         f"(choose from {', '.join(METHODS)})")
     cases: list[BenchCase] = []
     for family in families:
         for m in sizes:
             for seed in (range(first_seed, first_seed + seeds) if family in SEEDED_FAMILIES else range(1)):
-                cases.extend(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps, plane_margin,
-                                       local, settings) for local in locals_)
-                if m <= central_max_agents:
+                if "admm" in methods:
+                    cases.extend(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps,
+                                           plane_margin, local, settings) for local in locals_)
+                if m <= central_max_agents and "centralized" in methods:
                     cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps,
                                            settings=settings))
     return cases
+
+
+def _check_sizes(families: Iterable[str], sizes: Iterable[int]) -> None:
+    """ValueError (``sizes: ...``, one line) when a family does not take one of the sizes."""
+    for family in families:
+        multiple = SIZE_MULTIPLES.get(family)
+        wrong = [m for m in sizes if multiple and m % multiple]
+        if wrong:
+            raise ValueError(f"sizes: family {family} takes multiples of {multiple}, got {wrong[0]}")
 
 
 def _check_locals(locals_: Sequence[str]) -> None:
@@ -284,52 +334,61 @@ def _percentile(values: Sequence[float], q: float) -> float | None:
 
 def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
     """One row per (family, size, ADMM local step): rates over seeds, pooled step statistics, cost
-    gap vs centralised (the one centralised run of a seed is every local step's reference)."""
+    gap vs centralised (the one centralised run of a seed is every local step's reference).
+
+    A size with centralised runs only has one row of those, local step :data:`CENTRAL_ROW`. A row
+    of runs with cars gives ``min_footprint_distance_m`` and no ``min_separation_ratio``
+    (:attr:`CaseOutcome.min_footprint_distance`)."""
     rows = []
     keys = {(o.case.family, o.case.agents, o.case.local) for o in outcomes if o.case.method == "admm"}
     admm_sizes = {key[:2] for key in keys}
-    keys |= {(o.case.family, o.case.agents, DEFAULT_LOCAL) for o in outcomes
-             if (o.case.family, o.case.agents) not in admm_sizes}  # centralised only: one row
+    keys |= {(o.case.family, o.case.agents, CENTRAL_ROW) for o in outcomes
+             if (o.case.family, o.case.agents) not in admm_sizes}  # centralised only: one row of them
     for family, m, local in sorted(keys, key=_row_order):
-        admm = [o for o in outcomes
-                if (o.case.family, o.case.agents, o.case.method, o.case.local) == (family, m, "admm", local)]
         central = {o.case.seed: o for o in outcomes
                    if (o.case.family, o.case.agents, o.case.method) == (family, m, "centralized")}
-        gaps = [100.0 * (o.cost / central[o.case.seed].cost - 1.0) for o in admm
-                if o.case.seed in central and o.all_reached and central[o.case.seed].all_reached]
-        steps = [t for o in admm for t in o.step_ms]
-        agent = [t for o in admm for t in o.agent_step_ms]
-        iterations = [k for o in admm for k in o.iterations]
-        reached_times = [o.time_to_goal_s for o in admm if o.time_to_goal_s is not None]
-        makespans = [o.makespan_s for o in admm if o.makespan_s is not None]
-        ratios = [o.interaction_ratio for o in admm if o.interaction_ratio is not None]
-        critical = [t for o in admm for t in o.critical_path_ms or ()]
-        misses = [o.deadline_misses for o in admm if o.deadline_misses is not None]
-        handed = [o.local_fallbacks for o in admm if o.local_fallbacks is not None]
+        runs = list(central.values()) if local == CENTRAL_ROW else [
+            o for o in outcomes
+            if (o.case.family, o.case.agents, o.case.method, o.case.local) == (family, m, "admm", local)]
+        gaps = [100.0 * (o.cost / central[o.case.seed].cost - 1.0) for o in runs
+                if o.case.method == "admm" and o.case.seed in central and o.all_reached
+                and central[o.case.seed].all_reached]
+        steps = [t for o in runs for t in o.step_ms]
+        agent = [t for o in runs for t in o.agent_step_ms]
+        iterations = [k for o in runs for k in o.iterations]
+        reached_times = [o.time_to_goal_s for o in runs if o.time_to_goal_s is not None]
+        makespans = [o.makespan_s for o in runs if o.makespan_s is not None]
+        ratios = [o.interaction_ratio for o in runs if o.interaction_ratio is not None]
+        critical = [t for o in runs for t in o.critical_path_ms or ()]
+        misses = [o.deadline_misses for o in runs if o.deadline_misses is not None]
+        handed = [o.local_fallbacks for o in runs if o.local_fallbacks is not None]
         rows.append({
-            "family": family, "agents": m, "local": local, "runs": len(admm),
-            "all_reached_rate": float(np.mean([o.all_reached for o in admm])) if admm else None,
-            "collision_free_rate": float(np.mean([o.collisions == 0 for o in admm])) if admm else None,
-            "timed_out": sum(o.timed_out for o in admm),
-            "min_separation_ratio": min((o.min_separation_ratio for o in admm), default=None),
+            "family": family, "agents": m, "local": local, "runs": len(runs),
+            "all_reached_rate": float(np.mean([o.all_reached for o in runs])) if runs else None,
+            "collision_free_rate": float(np.mean([o.collisions == 0 for o in runs])) if runs else None,
+            "timed_out": sum(o.timed_out for o in runs),
+            "min_separation_ratio": min((o.min_separation_ratio for o in runs if o.min_footprint_distance is None),
+                                        default=None),
             "time_to_goal_s_median": _percentile(reached_times, 50),
             "makespan_s_median": _percentile(makespans, 50),
-            "overshoot_m_max": max((o.overshoot_max_m for o in admm if o.overshoot_max_m is not None), default=None),
+            "overshoot_m_max": max((o.overshoot_max_m for o in runs if o.overshoot_max_m is not None), default=None),
             "interaction_ratio_median": _percentile(ratios, 50),
             "step_ms_median": _percentile(steps, 50), "step_ms_p95": _percentile(steps, 95),
             "critical_path_ms_median": _percentile(critical, 50), "critical_path_ms_p99": _percentile(critical, 99),
             "deadline_misses": sum(misses) if misses else None,
             "agent_ms_median": _percentile(agent, 50), "agent_ms_p95": _percentile(agent, 95),
             "agent_ms_p99": _percentile(agent, 99),
-            "wall_s_per_run_median": _percentile([o.wall_time_s for o in admm], 50),
+            "wall_s_per_run_median": _percentile([o.wall_time_s for o in runs], 50),
             "iterations_mean": float(np.mean(iterations)) if iterations else None,
             "iterations_max": max(iterations, default=None),
-            "solver_failures": sum(o.solver_failures for o in admm),
+            "solver_failures": sum(o.solver_failures for o in runs),
             "local_fallbacks": sum(handed) if handed else None,
             "cost_gap_pct_median": _percentile(gaps, 50),
             "central_step_ms_median": _percentile([t for o in central.values() for t in o.step_ms], 50),
-            "copies_mean": _mean([o.copies_mean for o in admm if o.copies_mean is not None]),
-            "planes_mean": _mean([o.planes_mean for o in admm if o.planes_mean is not None]),
+            "copies_mean": _mean([o.copies_mean for o in runs if o.copies_mean is not None]),
+            "planes_mean": _mean([o.planes_mean for o in runs if o.planes_mean is not None]),
+            "min_footprint_distance_m": min(
+                (o.min_footprint_distance for o in runs if o.min_footprint_distance is not None), default=None),
         })
     return rows
 
@@ -417,12 +476,16 @@ def _cell(value: Any, fmt: str = "{:.1f}") -> str:
 
 def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The benchmark table (one line per family, swarm size and ADMM local step). ``local
-    fallbacks``: the local solves the QP local step handed to IPOPT, over the row's runs."""
+    fallbacks``: the local solves the QP local step handed to IPOPT, over the row's runs. A last
+    column ``min footprint gap m`` (the exact distance between cars' footprints) is there when a
+    row has one: a table of point swarms only stays as it was."""
+    footprints = any(r.get("min_footprint_distance_m") is not None for r in rows)
     header = ("| family | M | local | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
               "| makespan s | overshoot max m | makespan vs lone "
               "| step ms median | p95 | critical path ms median | p99 | deadline misses "
               "| per-agent ms median | p95 | p99 | wall s per run | ADMM it. mean | max | failures "
-              "| local fallbacks | cost vs central | central step ms | copies per agent | planes per agent |")
+              "| local fallbacks | cost vs central | central step ms | copies per agent | planes per agent |"
+              + (" min footprint gap m |" if footprints else ""))
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         lines.append("| " + " | ".join([
@@ -440,6 +503,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
             _cell(r["iterations_max"]), str(r["solver_failures"]), _cell(r.get("local_fallbacks")),
             _cell(r["cost_gap_pct_median"], "{:+.1f}%"), _cell(r["central_step_ms_median"]),
             _cell(r.get("copies_mean"), "{:.2f}"), _cell(r.get("planes_mean"), "{:.2f}"),
+            *([_cell(r.get("min_footprint_distance_m"), "{:.3f}")] if footprints else []),
         ]) + " |")
     return "\n".join(lines) + "\n"
 
@@ -463,6 +527,7 @@ def run_bench(
     case_runner: Callable[[BenchCase, Path | None], CaseOutcome] = run_case,
     locals_: Sequence[str] = (DEFAULT_LOCAL,),
     settings: Mapping[str, Any] | None = None,
+    methods: Sequence[str] = METHODS,
 ) -> tuple[Path, Path]:
     """Run the benchmark, write ``bench.md`` and ``bench.json`` into ``out``; return their paths.
 
@@ -470,7 +535,8 @@ def run_bench(
     ``executor`` for its own local solves; per-step times are therefore measured with ``jobs`` runs
     sharing the machine. The report is rewritten after every finished case, so an interrupted
     study (``KeyboardInterrupt``, raised once the workers are down) keeps what it measured. A case
-    that fails is logged and left out; the others still run, and a ``RuntimeError`` naming the
+    that fails (a scenario its validation refuses too) is logged and left out of the table, its
+    one-line reason listed under it; the others still run, and a ``RuntimeError`` naming the
     failures follows the last report. ``save_runs`` keeps every run's folder under ``out/runs``;
     ``plane_margin`` sets ``solver.plane_margin`` of every ADMM case. ``locals_`` are the ADMM
     agents' local steps (``solver.local``) to compare: every ADMM case runs once with each, the
@@ -478,6 +544,8 @@ def run_bench(
     runs one case (a module-level function when ``jobs`` > 1, so that worker processes can load it).
     ``settings`` (dotted scenario keys to values, ``{"weights.Q": 1.0}``) are set on every case's
     scenario; ValueError (``set: ...``) before anything runs when a case's scenario rejects them.
+    ``methods`` leaves out ADMM or the centralised runs (:func:`plan_cases`); a size a family does
+    not take is a ValueError (``sizes: ...``) before anything runs.
     """
     unknown = sorted(set(families) - set(FAMILIES))
     if unknown:
@@ -486,7 +554,7 @@ def run_bench(
     seeds = seeds or (1 if quick else 5)
     cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
                        min(central_max_agents, 4) if quick else central_max_agents, max_steps, first_seed,
-                       plane_margin, tuple(locals_), tuple((settings or {}).items()))
+                       plane_margin, tuple(locals_), tuple((settings or {}).items()), tuple(methods))
     _check_settings(cases)
     jobs = jobs or (1 if executor != "serial" else available_cores())
     machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
@@ -500,12 +568,13 @@ def run_bench(
     with closing(run_batch(tasks, jobs)) as finished:
         for done, result in enumerate(finished, 1):
             log(f"[{done}/{len(cases)}] {_progress(cases[result.index], result)}")
-            if not result.ok:
+            if result.ok:
+                outcomes.append(result.value)
+            else:
                 failures.append(f"{cases[result.index].label}: {result.error}")
-                continue
-            outcomes.append(result.value)
-            paths = write_report(out, outcomes, machine, time.perf_counter() - started, planned=len(cases))
-    if not outcomes:
+            paths = write_report(out, outcomes, machine, time.perf_counter() - started, planned=len(cases),
+                                 failed=failures)
+    if not outcomes and not failures:
         paths = write_report(out, outcomes, machine, time.perf_counter() - started, planned=len(cases))
     if failures:
         raise RuntimeError(f"{len(failures)} of {len(cases)} bench cases failed (the report holds the others), "
@@ -514,11 +583,17 @@ def run_bench(
 
 
 def _check_settings(cases: Sequence[BenchCase]) -> None:
-    """ValueError (``set: ...``, one line) when a case's scenario rejects the benchmark's settings."""
+    """ValueError (``set: ...``, one line) when a case's scenario rejects the benchmark's settings.
+    A case whose scenario is refused without them too is left to fail when it runs, with its own
+    reason (a method the family's scenario does not take is no fault of the settings)."""
     for case in {(c.family, c.method): c for c in cases if c.settings}.values():
         try:
             case.scenario()
         except (ValueError, KeyError, TypeError) as err:
+            try:
+                replace(case, settings=()).scenario()
+            except (ValueError, KeyError, TypeError):
+                continue
             raise ValueError(f"set: {str(err).splitlines()[0] if str(err) else type(err).__name__}") from None
 
 
@@ -540,11 +615,13 @@ def _write_atomically(path: Path, text: str) -> None:
 
 def write_report(
     out: Path, outcomes: Sequence[CaseOutcome], machine: str, elapsed_s: float, planned: int | None = None,
+    failed: Sequence[str] = (),
 ) -> tuple[Path, Path]:
     """Write ``bench.md`` and ``bench.json`` for the runs so far (each file replaced whole).
 
     The JSON keeps every run's per-step times, so reports of separate invocations can be merged
-    (:func:`merge_reports`)."""
+    (:func:`merge_reports`). ``failed`` are the cases that failed so far, each ``label: one-line
+    reason``: listed under the table (when there are any) and in the JSON's ``failed``."""
     out.mkdir(parents=True, exist_ok=True)
     rows = aggregate(outcomes)
     planned = len(outcomes) if planned is None else planned
@@ -556,9 +633,12 @@ def write_report(
         if interval is not None and "step" in g:
             g["step_interval"] = list(interval)
     fits = f"\nGrowth with the swarm size (least-squares fit on log-log):\n\n{growth_lines(growth)}" if growth else ""
+    failures = "".join(f"* {line}\n" for line in failed)
+    failures = f"\nFailed, left out of the table ({len(failed)}):\n\n{failures}" if failed else ""
     _write_atomically(markdown, f"# swarmpc bench\n\n{progress} in {elapsed_s:.0f} s ({machine}).\n\n"
-                      + markdown_table(rows) + fits)
+                      + markdown_table(rows) + failures + fits)
     data = {"machine": machine, "elapsed_s": elapsed_s, "planned_runs": planned, "rows": rows, "growth": growth,
+            "failed": list(failed),
             "runs": [{**asdict(o), "step_ms_median": _percentile(o.step_ms, 50),
                       "agent_ms_median": _percentile(o.agent_step_ms, 50),
                       "critical_path_ms_median": _percentile(o.critical_path_ms or [], 50)} for o in outcomes]}
@@ -606,6 +686,7 @@ _OUTCOME_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyT
     "critical_path_ms": (lambda v: v is None or _is_finite_list(v), "a list of finite numbers or null"),
     "deadline_misses": (lambda v: v is None or _is_count(v), "a count or null"),
     "local_fallbacks": (lambda v: v is None or _is_count(v), "a count or null"),
+    "min_footprint_distance": (_is_finite_or_none, "a number or null"),
 })  # fmt: skip
 """What each field of a ``bench.json`` run must hold (what :func:`write_report` writes)."""
 

@@ -116,7 +116,7 @@ def run(
     collision: Annotated[Collision | None, typer.Option(help="OBCA form")] = None,
     delta: Annotated[float | None, typer.Option(help="half-size of the box around each agent")] = None,
     seed: Annotated[int | None, typer.Option(help="seed for random scenarios and RRT")] = None,
-    agents: Annotated[int | None, typer.Option(help="number of agents (circle, random, spread)")] = None,
+    agents: Annotated[int | None, typer.Option(help="number of agents (circle, random, spread, crossing)")] = None,
     dim: Annotated[int | None, typer.Option(help="2 or 3 (circle, random, spread)")] = None,
     rho: Annotated[float | None, typer.Option(help="ADMM penalty")] = None,
     admm_tol: Annotated[float | None, typer.Option(help="ADMM residual tolerance [m]")] = None,
@@ -605,7 +605,8 @@ def bench(
     out: Annotated[Path, typer.Option(help="folder for bench.md and bench.json")] = Path("results/bench"),
     quick: Annotated[bool, typer.Option("--quick", help="M in {4, 8}, one seed: a smoke run")] = False,
     families: Annotated[
-        str, typer.Option(help="comma-separated: circle, sphere, random, spread")] = "circle,sphere,random",
+        str, typer.Option(help="comma-separated: circle, sphere, random, spread, crossing (cars; sizes "
+                          "multiples of 4)")] = "circle,sphere,random",
     sizes: Annotated[str | None, typer.Option(help="comma-separated swarm sizes [4,8,16,32,64]")] = None,
     seeds: Annotated[
         int | None, typer.Option(min=1, help="seeds of the random and spread families [5; quick 1]")] = None,

@@ -11,6 +11,9 @@
 * ``u-trap``: a U-shaped trap in front of a goal; the straight line leads into it.
 * ``intersection``: eight cars through a four-way crossing, two per arm, going straight or turning.
 * ``mixed``: cars and point robots crossing in the plane.
+* ``parking``: cars leaving and entering bays between short dividers along an aisle.
+* ``crossing``: M cars queued on the four arms of a crossing go straight across (the car family of
+  ``swarmpc bench``).
 
 Every generator declares its arguments in its signature (all take ``seed``, the scenario's seed,
 which ``random`` and ``spread`` also draw their points from); :func:`builtin_scenario` refuses
@@ -256,6 +259,66 @@ def mixed(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
             "workspace": {"lower": [-4.0, -4.0], "upper": [4.0, 4.0]}, "agents": agents}
 
 
+def parking(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
+    """A row of four bays 0.8 m wide (a car is 0.45 m wide and 0.7 m long) between 0.7 m dividers
+    along the bottom edge of a car park, opening on a one-way aisle to the east. Two cars drive in
+    along the aisle and turn nose-first into the two western bays, the second passing behind the
+    first as it turns in; two cars parked facing the aisle drive out of the two eastern bays and
+    leave eastwards.
+
+    The straight line out of a bay runs into the divider beside it, so every car starts from its
+    SE(2) path (``initial_guess: rrt``). The steering weight is a tenth of the other car
+    built-ins' (a car squares up in a bay only by steering hard over a short distance), and the
+    keep-right rule is off (one-way traffic; a turned goal points into the dividers)."""
+    bays = [-1.2, -0.4, 0.4, 1.2]
+    dividers = [{"box": {"center": [x, 0.35], "half_size": [0.05, 0.35]}} for x in (-1.6, -0.8, 0.0, 0.8, 1.6)]
+    agents = [
+        _car([-2.2, 2.2, 0.0], [bays[0], 0.75, -90.0]),
+        _car([-3.2, 2.2, 0.0], [bays[1], 0.75, -90.0]),
+        _car([bays[2], 0.25, 90.0], [3.8, 3.0, 0.0]),
+        _car([bays[3], 0.25, 90.0], [3.8, 2.2, 0.0]),
+    ]
+    weights = {**CARS["weights"], "R": [[1.0, 0.0], [0.0, 0.1]]}
+    return {"name": "parking", "dim": 2, **CARS, "weights": weights, "delta": delta, "seed": seed,
+            "solver": {**CARS["solver"], "initial_guess": "rrt"}, "deadlock": {"keep_right_deg": 0.0},
+            "workspace": {"lower": [-3.5, 0.0], "upper": [4.5, 3.8]}, "obstacles": dividers, "agents": agents}
+
+
+CROSSING_LEAD = 3.0
+"""Distance [m] from the centre of the crossing to the rear axle of the first car of an arm (and to
+the nearest goal beyond it); the roads are 3 m wide, so it leaves 1.5 m before the crossing."""
+CROSSING_GAP = 1.5
+"""Spacing [m] of the cars queued on an arm and of the goals on an outbound lane (a car is 0.7 m
+long, so 0.8 m lies between two queued cars)."""
+
+
+def crossing(agents: int = 8, delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
+    """``agents`` cars through a four-way crossing of two 3 m roads, every car going straight
+    across, right-hand traffic (lanes 0.75 m right of the centre lines).
+
+    The cars are dealt to the four arms in turn (M/4 per arm when M is a multiple of 4), queued one
+    behind the other, ``CROSSING_GAP`` apart, the first ``CROSSING_LEAD`` from the centre. An arm's
+    cars leave in the order they queue on the outbound lane across the crossing: the first car
+    takes the farthest goal, so no car has to pass another. The four arms are the same, turned by
+    right angles, and every car crosses the paths of two others' arms. Straight traffic only, unlike
+    ``intersection``: the conflicts (and the work of the solver) then grow with M alone, which
+    makes it the car family of ``swarmpc bench``. The step cap grows with the queues.
+    """
+    m = int(agents)
+    per_arm = [m // 4 + (q < m % 4) for q in range(4)]
+    longest = max(per_arm)
+    agent_list = []
+    for q, n in enumerate(per_arm):
+        for k in range(n):
+            start = (-(CROSSING_LEAD + CROSSING_GAP * k), -0.75, 0.0)
+            goal = (CROSSING_LEAD + CROSSING_GAP * (n - 1 - k), -0.75, 0.0)
+            agent_list.append(_car(_rotated(start, q), _rotated(goal, q)))
+    bound = CROSSING_LEAD + CROSSING_GAP * (longest - 1) + 1.5
+    return {"name": f"crossing-{m}", "dim": 2, **CARS, "horizon": 15, "delta": delta, "seed": seed,
+            "workspace": {"lower": [-bound, -bound], "upper": [bound, bound]}, "agents": agent_list,
+            "stop": {**CARS["stop"], "max_steps": 400 + 50 * (longest - 1)}}
+
+
 BUILTINS: dict[str, tuple[Callable[..., dict[str, Any]], str]] = {
     "paper-2d": (paper_2d, "the paper's 2D experiment: 4 agents swap diagonal corners of a 3 m square"),
     "paper-3d": (paper_3d, "the paper's 3D experiment: 4 drones swap diagonal corners of a 3 m cube"),
@@ -268,6 +331,8 @@ BUILTINS: dict[str, tuple[Callable[..., dict[str, Any]], str]] = {
     "u-trap": (u_trap, "a U-shaped trap in front of the goal; the straight line leads into it"),
     "intersection": (intersection, "eight cars through a four-way crossing, two per arm, straight or turning right"),
     "mixed": (mixed, "two cars and two point robots cross in the plane"),
+    "parking": (parking, "two cars drive into bays between dividers while two leave the bays beside them"),
+    "crossing": (crossing, "M cars queued on the four arms of a crossing go straight across (--agents M, default 8)"),
 }
 
 

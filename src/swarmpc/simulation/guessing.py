@@ -1,4 +1,5 @@
-"""Per-step initial-guess strategies for the closed loop (straight, shifted, RRT, auto)."""
+"""Per-step initial-guess strategies for the closed loop (straight, shifted, RRT, auto), and the
+cars' SE(2) routes behind their RRT guesses."""
 
 from __future__ import annotations
 
@@ -7,13 +8,111 @@ import numpy as np
 from swarmpc.config import Scenario
 from swarmpc.formulation.footprint_ocp import FootprintAgent, OrientedBody
 from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.model.car import KinematicCar
 from swarmpc.model.geometry import inflate_polytope
 from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.solvers.base import SHIFT_TOLERANCE, PlanStep
+from swarmpc.solvers.car_guess import car_guess, car_path
 from swarmpc.solvers.footprint_central import straight_guess
 from swarmpc.solvers.guesses import nominal_speed
 from swarmpc.solvers.registry import agent_settings
 from swarmpc.solvers.rrt import RRTGuess, straight_line_guess
+
+CAR_BUDGET_FACTOR = 20.0
+"""A car's SE(2) plan may take this many times ``solver.rrt_time_budget`` (a point's budget): its
+search space has the heading as a third dimension and its motions follow the turning limit."""
+CAR_RETRY_FACTOR = 4.0
+"""A car plan that found nothing is retried once with this many times its time limit (a loaded
+machine can run a plan that is quick on an idle core out of time)."""
+CAR_CLEARANCE = 0.9
+"""A car's path keeps this fraction of d_min from the obstacles, so that a pose the hard form
+keeps exactly d_min away is still a valid start."""
+
+
+class CarRoutes:
+    """The cars' SE(2) paths (:func:`~swarmpc.solvers.car_guess.car_path`), planned once per goal
+    and followed from where the car is at every later call.
+
+    A path is planned around the scenario's static obstacles with the footprint's exact clearance
+    (:data:`CAR_CLEARANCE` d_min), the whole footprint inside the workspace, and stored with its
+    goal pose; it is planned again only when the car's goal changes. A plan that finds nothing is
+    retried once with :data:`CAR_RETRY_FACTOR` times the time limit; when the retry finds nothing
+    either (a goal walled in, which a sampling planner cannot tell from an unlucky search, or a
+    start or goal pose the check refuses), the failure is stored as well, so the car keeps the
+    straight-line guess until its goal changes instead of searching in vain at every step. The
+    seed of a plan is derived from the scenario's seed, the agent and how many plans the agent
+    has had, so identical runs plan identical paths.
+
+    Following a stored path: the car's progress along it only moves forwards (a path that
+    reverses out of a bay passes the same places twice). From the pose of the path last reached,
+    the nearest pose ahead (position, plus the heading difference times the wheelbase) is the
+    car's place on the path; when the car is already past it, the next one. The path then runs
+    from the car's own pose straight to that pose and on along the rest; that first chord is not
+    checked against the obstacles (the MPC's constraints hold the trajectory clear, the guess
+    only gives it a side to pass on).
+
+    Parameters
+    ----------
+    scn
+        The scenario: workspace, obstacles, d_min, seed and ``solver.rrt_time_budget``.
+    """
+
+    def __init__(self, scn: Scenario) -> None:
+        self.bounds = scn.bounds()
+        self.obstacles = scn.obstacle_halfspaces()
+        self.clearance = CAR_CLEARANCE * scn.d_min
+        self.seed = scn.seed
+        self.time_limit = CAR_BUDGET_FACTOR * scn.solver.rrt_time_budget
+        self._routes: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}  # agent: (goal pose, path)
+        self._progress: dict[int, int] = {}  # agent: index of the path pose last reached
+        self._plans: dict[int, int] = {}  # agent: number of plans made
+        self._stats = {"fresh": 0, "reused": 0, "failed": 0}
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """Counts of fresh plans, reuses of a stored one and failed fresh plans (a subset of the fresh)."""
+        return dict(self._stats)
+
+    def _plan(self, agent: int, model: KinematicCar, pose: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
+        """A fresh path from ``pose`` to ``goal`` (retried once with a longer time limit), or None."""
+        count = self._plans.get(agent, 0)
+        self._plans[agent] = count + 1
+        entropy = [self.seed % 2**64, agent, count]
+        seed = int(np.random.SeedSequence(entropy).generate_state(1, np.uint32)[0])
+        path = None
+        for limit in (self.time_limit, CAR_RETRY_FACTOR * self.time_limit):
+            path = car_path(model, pose, goal, self.obstacles, self.bounds, self.clearance, seed, limit)
+            if path is not None:
+                break
+        self._stats["fresh"] += 1
+        self._stats["failed"] += path is None
+        return path
+
+    def path(self, agent: int, model: KinematicCar, state: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
+        """Poses (n, 3) from the car's pose ``state[:3]`` to its goal pose ``goal[:3]`` along its
+        stored path (planned now if its goal changed), or None when the plan found nothing."""
+        pose, target = np.asarray(state[:3], float), np.asarray(goal[:3], float)
+        stored = self._routes.get(agent)
+        if stored is None or not np.allclose(stored[0], target, rtol=0.0, atol=1e-9):
+            stored = (target, self._plan(agent, model, pose, target))
+            self._routes[agent], self._progress[agent] = stored, 0
+        else:
+            self._stats["reused"] += 1
+        path = stored[1]
+        if path is None:
+            return None
+        start = self._progress[agent]
+        ahead = path[start:]
+        gaps = np.linalg.norm(ahead[:, :2] - pose[:2], axis=1) + model.wheelbase * np.abs(
+            np.remainder(ahead[:, 2] - pose[2] + np.pi, 2 * np.pi) - np.pi)
+        k = start + int(np.argmin(gaps))
+        if k + 1 < len(path) and np.dot(pose[:2] - path[k, :2], path[k + 1, :2] - path[k, :2]) > 0:
+            k += 1
+        self._progress[agent] = k
+        rest = path[k:]
+        if np.linalg.norm(rest[0, :2] - pose[:2]) <= 1e-12 and len(rest) > 1:
+            rest = rest[1:]
+        return np.vstack([pose, rest])
 
 
 class GuessProvider:
@@ -33,10 +132,13 @@ class GuessProvider:
     then taken along the path to the agent's route goal (the goal :meth:`goals` was given), not to
     the moving waypoint, so the stored path is reused from step to step instead of re-planned.
 
-    A car (``agents[].model: car``) is guessed with its own model: shifted as above, otherwise
-    along the straight line heading where it goes
-    (:func:`~swarmpc.solvers.footprint_central.straight_guess`); the RRT plans points, so it
-    guesses and steers the point agents only.
+    A car (``agents[].model: car``) is guessed with its own model: shifted as above; where the
+    point agents get RRT guesses (``rrt``, and ``auto`` with static obstacles), along its SE(2)
+    path around the obstacles within its turning limit (:class:`CarRoutes`, driven by
+    :func:`~swarmpc.solvers.car_guess.car_guess` at 80% of the speed limit, within the
+    acceleration limit); otherwise, and whenever its SE(2) plan found nothing, along the straight
+    line heading where it goes (:func:`~swarmpc.solvers.footprint_central.straight_guess`).
+    Cars are not steered to waypoints: :meth:`goals` leaves their goals as they are.
     """
 
     def __init__(self, scn: Scenario, settings: OCPSettings, strategy: str | None = None) -> None:
@@ -51,9 +153,12 @@ class GuessProvider:
         self.lookahead = 1.5 * self.speed * settings.horizon * settings.dt
         self._route: np.ndarray | None = None  # the goals given to the last goals() call
         self._cars: list[FootprintAgent | None] = [None] * scn.num_agents  # per agent: a car's own settings
+        self._car_routes: CarRoutes | None = None  # the cars' SE(2) paths, with the RRT guesses only
         if scn.has_cars:
             self._cars = [FootprintAgent(s) if isinstance(s.model, OrientedBody) else None
                           for s in agent_settings(scn)]
+            if uses_rrt:
+                self._car_routes = CarRoutes(scn)
 
     def _body_planners(self, scn: Scenario) -> list[RRTGuess]:
         """One RRT planner per body size, around the obstacles grown by that body (the planner's
@@ -76,17 +181,34 @@ class GuessProvider:
 
     @property
     def rrt_stats(self) -> dict[str, int] | None:
-        """The RRT planners' counts (fresh, reused, failed), summed over the body sizes."""
+        """The RRT planners' counts (fresh, reused, failed), summed over the body sizes and the
+        cars' SE(2) plans."""
         if not self._planners:
             return None
         stats = [planner.stats for planner in self._planners]
+        if self._car_routes is not None:
+            stats.append(self._car_routes.stats)
         return {key: sum(s[key] for s in stats) for key in stats[0]}
+
+    def _car_guess(self, agent: int, car: FootprintAgent, state: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """A car's state guess (N+1, 4): along its SE(2) path (:class:`CarRoutes`); the straight
+        guess when it gets no SE(2) planning (no RRT guesses in this scenario, a model other than
+        the kinematic car) or when its plan found nothing."""
+        s, model = car.settings, car.settings.model
+        if self._car_routes is None or not isinstance(model, KinematicCar):
+            return straight_guess(car, state, goal)
+        path = self._car_routes.path(agent, model, state, goal)
+        if path is None:
+            return straight_guess(car, state, goal)
+        states, _ = car_guess(model, state, goal[:3], path, s.horizon, s.dt, speed=nominal_speed(s),
+                              accel=model.accel_limit(s.accel))
+        return states
 
     def _fresh(self, agent: int, state: np.ndarray, goal: np.ndarray) -> np.ndarray:
         s, model = self.settings, self.settings.model
         car = self._cars[agent]
         if car is not None:
-            return straight_guess(car, state, goal)
+            return self._car_guess(agent, car, state, goal)
         if self._rrt_of:
             if self._route is not None and agent < len(self._route):
                 goal = self._route[agent]  # plan (and reuse) towards the route goal, not the waypoint
@@ -112,11 +234,20 @@ class GuessProvider:
         return out
 
     def guesses(self, states: np.ndarray, goals: np.ndarray, previous: PlanStep | None) -> np.ndarray:
-        """(M, N+1, n) guesses for measured ``states`` (M, n)."""
+        """(M, N+1, n) guesses for measured ``states`` (M, n).
+
+        A car with an SE(2) route (:class:`CarRoutes`) is guessed fresh only where ``auto`` would
+        guess it fresh (the first step, a failed step, a state off its plan): the solvers that
+        take cars start from their own shifted answer while they have one, so a car's fresh guess
+        is used only there, and a goal the deadlock rules move at every step is not re-planned at
+        every step.
+        """
         out = []
         for i, (state, goal) in enumerate(zip(states, goals, strict=True)):
+            shifts = self.strategy in ("shifted", "auto") or (
+                self._car_routes is not None and self._cars[i] is not None)
             if (
-                self.strategy in ("shifted", "auto")
+                shifts
                 and previous is not None
                 and np.allclose(previous.states[i, 1], state, atol=SHIFT_TOLERANCE)
                 and not previous.fallback[i]

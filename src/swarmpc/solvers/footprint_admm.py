@@ -23,7 +23,11 @@ One MPC step (:meth:`FootprintADMMSolver.plan`):
    current plans, so its answer keeps d_min from all of them by the OBCA rows; every pair with a
    repaired agent is then certified by the later of its two repairs. An agent whose repair fails
    brakes (:func:`~swarmpc.solvers.base.braking_plan`: a car cannot side-step), which is counted
-   as a fallback.
+   as a fallback, and the agents whose plans that braking plan violates are repaired against it
+   in a further pass (:data:`REPAIR_PASSES` passes at most).
+
+A local solve that fails warm (from the agent's previous answer) is tried once more cold: from
+the agent's last plan with every certificate seeded afresh from the geometry.
 
 The local solves of an iteration are independent; this solver runs them one after the other in
 the calling process and reports the step's critical path as if each agent had its own core (per
@@ -60,6 +64,11 @@ __all__ = ["FootprintADMMOptions", "FootprintADMMSolver", "coupled_pairs", "foot
 SAFETY_TOLERANCE = 1e-6
 """[m] a planned pair closer than d_min by more than this is repaired (IPOPT meets its rows to
 within its own tolerance, far below)."""
+
+
+REPAIR_PASSES = 3
+"""Repair passes per step: the first repairs the violating pairs, the next ones the pairs that a
+braking fallback of the pass before violates."""
 
 
 @dataclass(frozen=True)
@@ -242,29 +251,32 @@ class FootprintADMMSolver:
         return params
 
     def _solve(self, i: int, step: _Step, guess: np.ndarray, fixed: dict[str, np.ndarray] | None = None) -> bool:
-        """Agent i's local solve; keeps the answer when it succeeds. True on success."""
+        """Agent i's local solve, warm from its last answer; when that fails (or there is none),
+        cold from its last plan (or ``guess``) with certificates seeded afresh. Keeps the answer
+        when one succeeds; True on success."""
         state = self._agents[i]
         assert state is not None
         agents = self.swarm.agents
-        previous = state.solution
-        lam_x: np.ndarray | None = None
-        lam_g: np.ndarray | None = None
-        if previous is not None:
-            point, lam_x, lam_g = previous.x, previous.lam_x, previous.lam_g
-        else:
-            neighbours = [agents[j] for j in state.neighbours]
-            point = footprint_local_guess(agents[i], guess, neighbours, [step.z[j] for j in state.neighbours])
         params = self._params(i, step, state)
         if fixed:  # a repair: the copies are pinned, and the own block is drawn to the agent's own plan
             own = consensus_block(agents[i], guess)
             params.update({"Z": own, "Y": np.zeros_like(own)})
-        solution = state.problem.solve(params, point, lam_x, lam_g, fixed)
-        state.seconds += solution.solve_time
-        if not solution.success:
+        previous = state.solution
+        starts: list[tuple[dict[str, np.ndarray], np.ndarray | None, np.ndarray | None]] = []
+        if previous is not None:
+            starts.append((previous.x, previous.lam_x, previous.lam_g))
+        plan = guess if previous is None or fixed else np.asarray(previous.x["X"]).T
+        neighbours = [agents[j] for j in state.neighbours]
+        copies = [fixed[f"C{slot}"] if fixed else step.z[j] for slot, j in enumerate(state.neighbours)]
+        starts.append((footprint_local_guess(agents[i], plan, neighbours, copies), None, None))
+        for point, lam_x, lam_g in starts:
+            solution = state.problem.solve(params, point, lam_x, lam_g, fixed)
+            state.seconds += solution.solve_time
+            if solution.success:
+                state.solution = solution
+                return True
             state.failures += 1
-            return False
-        state.solution = solution
-        return True
+        return False
 
     def _consensus(self, step: _Step) -> tuple[float, float]:
         """The z and multiplier updates from every agent's last answer; (primal, dual) residuals."""
@@ -312,23 +324,37 @@ class FootprintADMMSolver:
 
     def _repair(self, step: _Step, plans: list[np.ndarray], inputs: list[np.ndarray], fallback: np.ndarray) -> bool:
         """Repairs the agents of every violating pair in index order (module docstring, step 3);
-        True when a repair was needed."""
-        violating = plan_violations(self.swarm, plans)
-        if not violating or self.swarm.settings.collision != "hard":
+        True when a repair was needed. An agent whose repair fails brakes; the pairs that braking
+        plan violates are repaired in a further pass by their agents that still plan (at most
+        :data:`REPAIR_PASSES` passes)."""
+        if self.swarm.settings.collision != "hard":
             return False
-        for i in sorted({a for pair in violating for a in pair}):
-            state = self._agents[i]
-            assert state is not None
-            agents = self.swarm.agents
-            fixed = {f"C{slot}": consensus_block(agents[j], plans[j]) for slot, j in enumerate(state.neighbours)}
-            before = state.seconds
-            if self._solve(i, step, plans[i], fixed):
-                plans[i], inputs[i] = state.solution.x["X"].T, state.solution.x["U"].T  # type: ignore[union-attr]
-            else:
-                plans[i], inputs[i] = braking_plan(step.states[i], agents[i].settings)
-                fallback[i] = True
-            step.critical += state.seconds - before
-        return True
+        repaired = False
+        for _ in range(REPAIR_PASSES):
+            violating = plan_violations(self.swarm, plans)
+            agents = sorted({a for pair in violating for a in pair if not fallback[a]})
+            if not agents:
+                break
+            repaired = True
+            for i in agents:
+                self._repair_agent(i, step, plans, inputs, fallback)
+        return repaired
+
+    def _repair_agent(
+        self, i: int, step: _Step, plans: list[np.ndarray], inputs: list[np.ndarray], fallback: np.ndarray,
+    ) -> None:
+        """Agent i's plan solved again against its neighbours' plans (copies pinned), or braking."""
+        state = self._agents[i]
+        assert state is not None
+        agents = self.swarm.agents
+        fixed = {f"C{slot}": consensus_block(agents[j], plans[j]) for slot, j in enumerate(state.neighbours)}
+        before = state.seconds
+        if self._solve(i, step, plans[i], fixed):
+            plans[i], inputs[i] = state.solution.x["X"].T, state.solution.x["U"].T  # type: ignore[union-attr]
+        else:
+            plans[i], inputs[i] = braking_plan(step.states[i], agents[i].settings)
+            fallback[i] = True
+        step.critical += state.seconds - before
 
     def plan(
         self, states: Sequence[np.ndarray], goals: Sequence[np.ndarray], guesses: Sequence[np.ndarray],
