@@ -20,11 +20,11 @@ import argparse
 import json
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from study import measure_rows, write_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "knots.json"
@@ -129,18 +129,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="write the experiment (with this conclusion) into controller.json from the rows file")
     args = parser.parse_args(argv)
     if args.record is not None:
-        record = json.loads(RECORD.read_text())
         experiment = lab_record(json.loads(args.out.read_text())["rows"], args.record)
-        record["experiments"] = [e for e in record["experiments"] if e["id"] != experiment["id"]] + [experiment]
-        RECORD.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n")
+        write_experiment(RECORD, experiment)
         return 0
-    rows = json.loads(args.out.read_text())["rows"] if args.out.exists() else []
-    with ProcessPoolExecutor(args.jobs) as pool:
-        for row in pool.map(measure, [(case, angle) for case in args.cases for angle in args.angles]):
-            print(json.dumps(row), flush=True)
-            rows = [r for r in rows if (r["case"], r["keep_right_deg"]) != (row["case"], row["keep_right_deg"])]
-            rows.append(row)
-            args.out.write_text(json.dumps({"rows": rows}, indent=2) + "\n")
+    tasks = [(case, angle) for case in args.cases for angle in args.angles]
+    measure_rows(args.out, tasks, measure, lambda r: (r["case"], r["keep_right_deg"]), args.jobs)
     return 0
 
 
