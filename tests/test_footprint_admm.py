@@ -141,3 +141,35 @@ def test_mixed_swarm_by_admm_reaches_every_goal_without_collision(tmp_path: Path
     least = min(float(rectangle_distance(poses[:, i], sizes[i], poses[:, j], sizes[j], signed=True).min())
                 for i in range(poses.shape[1]) for j in range(i + 1, poses.shape[1]))
     assert least > 0.0
+
+
+def _block_sums(solver: FootprintADMMSolver) -> list[float]:
+    """Per block, the largest entry of the sum of its holders' multipliers (own and copies)."""
+    sums = []
+    for j, state in enumerate(solver._agents):
+        assert state is not None
+        total = np.zeros_like(solver._z[j]) if state.own_y is None else state.own_y.copy()  # type: ignore[index]
+        for other in solver._agents:
+            assert other is not None
+            if j in other.copy_y:
+                total += other.copy_y[j]
+        sums.append(float(np.max(np.abs(total))))
+    return sums
+
+
+def test_multipliers_carried_to_a_new_step_keep_summing_to_zero_per_block() -> None:
+    """Three cars in a row, 0-1 and 1-2 coupled; then 1-2 no longer is. Car 0 keeps its
+    neighbours, car 1 does not: car 0 must not keep its multiplier of car 1's block alone
+    (a lone multiplier is a constant force on car 1)."""
+    swarm = swarm_of(car(horizon=6), car(horizon=6), car(horizon=6))
+    states = np.array([[-2.2, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [2.2, 0.0, 0.0, 0.0]])
+    goals = states + np.array([0.5, 0.0, 0.0, 0.0])
+    solver = FootprintADMMSolver(swarm, FootprintADMMOptions(max_iter=5))
+    assert coupled_pairs(swarm, states, 0.5) == [(0, 1), (1, 2)]
+    solver.plan(list(states), list(goals), [straight_guess(a, states[i], goals[i]) for i, a in enumerate(swarm.agents)])
+    assert max(_block_sums(solver)) < 1e-9
+    assert any(state is not None and state.copy_y for state in solver._agents)  # something to carry
+    solver._start_agents([(0, 1)])
+    assert max(_block_sums(solver)) < 1e-9
+    carried = solver._agents[0]
+    assert carried is not None and carried.neighbours == (1,) and 1 not in carried.copy_y

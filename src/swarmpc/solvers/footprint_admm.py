@@ -80,7 +80,8 @@ class FootprintADMMOptions:
     tol: float = 1e-3
     coupling_margin: float = 0.5
     carry_multipliers: bool = True
-    """Start a step's multipliers from the previous step's, shifted (as the plans are)."""
+    """Start a step's multipliers from the previous step's, shifted (as the plans are), for every
+    block whose holders are those of the previous step (:meth:`FootprintADMMSolver._start_agents`)."""
 
     @classmethod
     def from_options(cls, options: SolverConfig) -> FootprintADMMOptions:
@@ -227,16 +228,25 @@ class FootprintADMMSolver:
 
     def _start_agents(self, pairs: list[tuple[int, int]]) -> None:
         """Every agent's state for a new step: the previous answer shifted when the neighbours
-        are unchanged, and the multipliers shifted with it when ``carry_multipliers``
-        (otherwise reset)."""
-        for i in range(self.swarm.num_agents):
-            neighbours, previous = self._order(i, pairs), self._agents[i]
+        are unchanged, and with ``carry_multipliers`` the multipliers of every stable block
+        shifted (the others reset).
+
+        A block is stable when its agent has the neighbours it had: its holders are then the
+        same, and all of them carry their multipliers of it, so these keep summing to zero and
+        the consensus stays the plain mean of the holders' values. A multiplier kept by one
+        holder after another holder dropped or reset its own would act as a constant force
+        on the block's agent, which can hold a car short of a free goal."""
+        order = [self._order(i, pairs) for i in range(self.swarm.num_agents)]
+        stable = [previous is not None and previous.neighbours == order[i] for i, previous in enumerate(self._agents)]
+        for i, neighbours in enumerate(order):
+            previous = self._agents[i]
             state = _AgentState(neighbours, self._problem(i, neighbours))
-            if previous is not None and previous.neighbours == neighbours and previous.solution is not None:
+            if previous is not None and stable[i] and previous.solution is not None:
                 state.solution = _shifted(previous.problem, previous.solution)
-                if self.options.carry_multipliers:
-                    state.own_y = None if previous.own_y is None else _shift(previous.own_y)
-                    state.copy_y = {j: _shift(y) for j, y in previous.copy_y.items()}
+            if previous is not None and self.options.carry_multipliers:
+                if stable[i] and previous.own_y is not None:
+                    state.own_y = _shift(previous.own_y)
+                state.copy_y = {j: _shift(y) for j, y in previous.copy_y.items() if stable[j] and j in neighbours}
             self._agents[i] = state
 
     def _params(self, i: int, step: _Step, state: _AgentState) -> dict[str, np.ndarray]:
