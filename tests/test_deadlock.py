@@ -273,6 +273,81 @@ def test_a_knot_near_the_ceiling_lifts_downwards_and_a_second_knot_lifts_the_oth
     assert [agent for _, agent in resolver.events] == [0, 1]
 
 
+def test_a_lift_ends_as_soon_as_the_lifted_members_goal_is_free_and_its_way_clear():
+    states, goals = _knotted_pair()
+    bounds = (np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 2.2]))
+    early = DeadlockResolver(2, 3, clearance=0.35, bounds=bounds)
+    held = DeadlockResolver(2, 3, clearance=0.35, bounds=bounds, policy=DeadlockPolicy(release_lifts=False))
+    patience = early.policy.patience
+    for step in range(patience):
+        early.goals(step, states, goals)
+        held.goals(step, states, goals)
+    assert early.events == held.events == [(patience - 1, 0)]
+    # agent 0 is over its goal, but agent 1 still sits under it: the lift goes on
+    risen = states.copy()
+    risen[0, :3] = [0.0, 0.5, 0.9]
+    assert early.goals(patience, risen, goals)[0, 2] == pytest.approx(0.9)
+    # agent 1 has slid into its own slot: agent 0's goal is free and the way down clear
+    parted = risen.copy()
+    parted[1, :3] = goals[1, :3]
+    assert np.array_equal(early.goals(patience + 1, parted, goals), goals)
+    assert held.goals(patience + 1, parted, goals)[0, 2] == pytest.approx(0.9)
+
+
+def test_a_knot_whose_members_slide_without_getting_closer_is_untied_after_knot_patience():
+    states, goals = _knotted_pair()
+    states[:, 3] = [0.2, -0.2]  # moving, never slow: the stall rule alone never fires
+    bounds = (np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 2.2]))
+    knot_patience = 4
+    resolver = DeadlockResolver(2, 3, clearance=0.35, bounds=bounds, policy=DeadlockPolicy(knot_patience=knot_patience))
+    waiting = DeadlockResolver(2, 3, clearance=0.35, bounds=bounds, policy=DeadlockPolicy(knot_patience=None))
+    for step in range(3 * knot_patience):
+        resolver.goals(step, states, goals)
+        waiting.goals(step, states, goals)
+    assert resolver.events == [(knot_patience, 0)] and waiting.events == []
+
+
+def test_a_knot_whose_members_flow_past_each_other_is_left_alone_though_one_is_pushed_back():
+    states, goals = _knotted_pair()
+    states[:, 3] = [0.2, -0.2]
+    bounds = (np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 2.2]))
+    resolver = DeadlockResolver(2, 3, clearance=0.35, bounds=bounds)
+    knot_patience = resolver.policy.knot_patience
+    assert knot_patience is not None
+    for step in range(knot_patience + 5):
+        assert resolver.knots(states[:, :3], goals[:, :3], np.ones(2, bool), np.ones(2, bool))
+        resolver.goals(step, states, goals)
+        states[0, 1] += 0.012  # agent 0 gets on towards its goal
+        states[1, 1] += 0.001  # and pushes agent 1 back from its own
+    assert resolver.events == []
+
+
+def test_the_member_of_a_knot_that_made_no_progress_longest_is_the_one_lifted():
+    states, goals = _knotted_pair()
+    states[:, 3] = [0.2, -0.2]
+    bounds = (np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 2.2]))
+    resolver = DeadlockResolver(2, 3, clearance=0.35, bounds=bounds, policy=DeadlockPolicy(knot_patience=4))
+    for step in range(8):
+        resolver.goals(step, states, goals)
+        if step >= 2:  # agent 0 creeps towards its goal, still on agent 1's; agent 1 stays put
+            states[0, 1] += 0.003
+    assert resolver.events == [(4, 1)]
+
+
+def test_a_neighbour_parked_beside_a_knots_goal_does_not_hide_the_knot():
+    states, goals = _knotted_pair()
+    # a third agent settled in its own slot, nearer agent 0's goal than agent 1 is
+    parked = np.array([[0.0, 0.75, 0.6, 0, 0, 0]])
+    states, goals = np.vstack([states, parked]), np.vstack([goals, parked])
+    bounds = (np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 2.2]))
+    resolver = DeadlockResolver(3, 3, clearance=0.35, bounds=bounds)
+    gaps = resolver._goal_gaps(states[:, :3], goals[:, :3], resolver.clearance + resolver.policy.corridor_margin)
+    assert gaps[0].argmin() == 2  # the parked agent is the one nearest agent 0's goal
+    unsettled = np.array([True, True, False])
+    [cycle] = resolver.knots(states[:, :3], goals[:, :3], unsettled, np.array([True, False, False]))
+    assert sorted(cycle.tolist()) == [0, 1]
+
+
 def test_a_knot_boxed_in_from_above_steps_out_sideways():
     states, goals = _knotted_pair()
     # agents parked 0.45 m over the pair's layer (the floor 0.2 m under it): no way over or under

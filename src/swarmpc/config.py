@@ -938,7 +938,25 @@ class DeadlockConfig(_Frozen):
     )
     lift: float = Field(default=0.5, gt=0, description="How far [m] the lifted member of a knot climbs or descends.")
     lift_hold: int = Field(
-        default=40, ge=1, le=MAX_STEPS, description="Steps a lift lasts, and the other members of the knot wait."
+        default=40, ge=1, le=MAX_STEPS,
+        description="Steps a lift lasts at most, and the other members of the knot wait.",
+    )
+    knot_patience: int | None = Field(
+        default=10, ge=1, le=MAX_STEPS,
+        description="Steps over which the members of a knot together must get `knot_progress` per member and step "
+        "closer to their goals, or the knot is untied without waiting for a member to stall (a pair at rest short "
+        "of free goals, or sliding round each other). `null`: a knot waits for a member to stall.",
+    )
+    knot_progress: float = Field(
+        default=0.005, gt=0,
+        description="Progress [m per member and step] the members of a knot must make together over "
+        "`knot_patience` steps, or the knot is untied.",
+    )
+    release_lifts: bool = Field(
+        default=True,
+        description="End a lift early, as soon as the knot has come apart (no member within the clearance plus "
+        "`corridor_margin` of another member's goal), the lifted member's goal is free and the straight way to "
+        "it clear: waiting longer only delays it.",
     )
     side_steps: bool = Field(
         default=True,

@@ -37,13 +37,19 @@ all: two agents short of their free goals, each in the other's way, never move o
 What is left near the goals are knots: two or three agents each sitting on the next one's goal,
 sliding to and fro together. Turning them all right only moves the knot round in its layer. In 3D,
 with the workspace known, a cycle of unsettled agents each within the clearance plus
-``corridor_margin`` of the previous one's goal is untied instead: the member lifted least so far
-climbs (or descends, whichever side has more room) by ``lift`` and heads over its own goal for
-``lift_hold`` steps, while the others keep their goals and wait; the layer clears and each slides
-into its slot. Where that way runs into agents parked just over and under the knot (or the
-ceiling is too close), the member steps out sideways instead, across the line to its goal, on
-the side that keeps farthest from the others: a pair swapping in a layer between parked agents
-cannot pass over or under each other, only side by side.
+``corridor_margin`` of the previous one's goal (agents parked in their own slots beside it do
+not count) is untied instead, as soon as one member has stalled or the members together made
+next to no progress to their goals over ``knot_patience`` steps (a pair at rest short of free
+goals is spared by the free-goal rule, a pair sliding round each other is not slow, only
+stuck). The member lifted least so far (then the one that has gone
+longest without progress) climbs (or descends, whichever side has more room) by ``lift`` and
+heads over its own goal for at most ``lift_hold`` steps, while the others keep their goals and
+wait; the layer clears and each slides into its slot. The lift ends early once the knot has come
+apart, the member's goal is free and the straight way to it clear (``release_lifts``): holding it
+out of the layer after that only delays it. Where the way out runs into agents parked just over and under the knot (or
+the ceiling is too close), the member steps out sideways instead, across the line to its goal,
+on the side that keeps farthest from the others: a pair swapping in a layer between parked
+agents cannot pass over or under each other, only side by side.
 
 Every threshold is a field of :class:`DeadlockPolicy`, set from a scenario's ``deadlock:`` section
 (:class:`swarmpc.config.DeadlockConfig`, which documents each key; ``enabled: false`` switches
@@ -117,7 +123,21 @@ class DeadlockPolicy:
     lift: float = 0.5
     """How far (m) the lifted member of a knot climbs or descends."""
     lift_hold: int = 40
-    """Steps the lift lasts, and the other members wait."""
+    """Steps the lift lasts at most, and the other members wait."""
+    knot_patience: int | None = 10
+    """Steps over which the members of a knot together must get ``knot_progress`` per member and
+    step closer to their goals, or the knot is untied without waiting for a member to stall: a
+    pair held at rest short of free goals is spared by the free-goal rule, and a pair sliding
+    round each other is not slow, only stuck. The knot as a whole counts: one member pushed back
+    while the others flow past is no reason to lift anyone. None: a knot waits for a stall."""
+    knot_progress: float = 0.005
+    """Progress [m per member and step] the members of a knot must make together over
+    ``knot_patience`` steps (0.005: the stall speed, 0.05 m/s, at dt = 0.1 s)."""
+    release_lifts: bool = True
+    """End a lift before ``lift_hold`` runs out as soon as the knot has come apart (no member
+    within the clearance plus ``corridor_margin`` of another member's goal), the lifted member's
+    own goal is free (every other agent at least the clearance away) and the straight way to it
+    clear of the others: holding the member out of its layer then only delays it."""
     side_steps: bool = True
     """When the vertical way out of a knot runs into a parked neighbour, step out sideways instead
     (the axis and side that keep farthest from the others)."""
@@ -193,6 +213,9 @@ class DeadlockResolver:
         self._spared = np.zeros(num_agents, int)
         self._detour_left = np.zeros(num_agents, int)
         self._detour_goal: dict[int, np.ndarray] = {}
+        self._lifted: dict[int, np.ndarray] = {}
+        self._idle = np.zeros(num_agents, int)
+        self._recent: list[np.ndarray] = []
         self.events: list[tuple[int, int]] = []
         default = KEEP_RIGHT_PLANE_DEG if dim == 2 else 0.0
         self.keep_right_deg = default if policy.keep_right_deg is None else policy.keep_right_deg
@@ -252,6 +275,7 @@ class DeadlockResolver:
         if not self.policy.untie_knots or self.dim != 3 or self.bounds is None:
             return []
         gaps = self._goal_gaps(positions, goals, self.clearance + self.policy.corridor_margin)
+        gaps[:, ~unsettled] = np.inf  # a neighbour parked in its own slot beside a goal is no part of a knot
         occupant = np.where(gaps.min(axis=1) < 1.0, gaps.argmin(axis=1), -1)
         cycles: list[np.ndarray] = []
         seen: set[int] = set()
@@ -310,10 +334,11 @@ class DeadlockResolver:
         return best
 
     def _untie(self, step: int, cycle: np.ndarray, positions: np.ndarray, goals: np.ndarray) -> None:
-        """Lift the knot's member lifted least so far out of the knot's layer (see ``_way_out``)
-        for ``lift_hold`` steps; the others wait for their goals to clear."""
+        """Lift the knot's member lifted least so far (then the one that has gone longest without
+        progress) out of the knot's layer (see ``_way_out``) for at most ``lift_hold`` steps; the
+        others wait for their goals to clear."""
         p, model = self.policy, self.model
-        lifter = int(cycle[np.lexsort((cycle, self._lifts[cycle]))[0]])
+        lifter = int(cycle[np.lexsort((cycle, -self._idle[cycle], self._lifts[cycle]))[0]])
         way_out = self._way_out(lifter, positions, model.position(goals))
         target = model.state_at(way_out, model.velocity(goals[lifter]))
         self._lifts[lifter] += 1
@@ -321,7 +346,50 @@ class DeadlockResolver:
         self._detour_left[lifter] = p.lift_hold
         self._stalled[cycle] = 0
         self._waiting[cycle[cycle != lifter]] = p.lift_hold
+        self._idle[cycle] = 0
+        self._lifted[lifter] = cycle
         self.events.append((step, lifter))
+
+    def _untie_knots(self, step: int, positions: np.ndarray, goals: np.ndarray, distance: np.ndarray,
+                     due: np.ndarray) -> None:
+        """Untie every knot (:meth:`knots`) with a member due for a detour or, with
+        ``knot_patience`` set, whose members together got less than ``knot_progress`` per member
+        and step closer to their goals over the last ``knot_patience`` steps: a knot held at rest
+        short of free goals (spared by the free-goal rule), or sliding round without progress.
+        A knot whose members still flow past each other is left alone. The members of an untied
+        knot are no longer ``due`` (in place)."""
+        p, window = self.policy, self.policy.knot_patience
+        unsettled = distance > p.distance_threshold
+        starts, before = due.copy(), None
+        if window is not None:
+            self._recent = [*self._recent[-window:], distance]
+            if len(self._recent) > window:
+                before = self._recent[0]
+                starts |= unsettled & (self._waiting == 0)
+        for cycle in self.knots(positions, self.model.position(goals), unsettled, starts):
+            stuck = before is not None and window is not None and (
+                before[cycle].sum() - distance[cycle].sum() < p.knot_progress * window * len(cycle))
+            if due[cycle].any() or stuck:
+                self._untie(step, cycle, positions, goals)
+                due[cycle] = False
+
+    def _release_lifts(self, positions: np.ndarray, goals: np.ndarray) -> None:
+        """End the lifts whose knot has come apart (no member within the clearance plus
+        ``corridor_margin`` of another member's goal) and whose member can go home now: its goal
+        is free and the straight way to it clear of every other agent (``release_lifts``). The
+        knot's other members stop waiting."""
+        free = self.goal_free(positions, goals)
+        gaps = self._goal_gaps(positions, goals, self.clearance + self.policy.corridor_margin)
+        for lifter, cycle in list(self._lifted.items()):
+            if self._detour_left[lifter] == 0:
+                del self._lifted[lifter]
+                continue
+            apart = gaps[np.ix_(cycle, cycle)].min() >= 1.0
+            others = np.delete(positions, lifter, axis=0)
+            if apart and free[lifter] and self._path_room(positions[lifter], goals[lifter], others) >= 1.0:
+                self._detour_left[lifter] = 0
+                self._waiting[cycle] = 0
+                del self._lifted[lifter]
 
     def goals(self, step: int, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Goals for this step: the true ones, or a detour for agents found deadlocked (always the
@@ -355,11 +423,13 @@ class DeadlockResolver:
         self._stalled = np.where(stalled, self._stalled + 1, 0)
         due = np.where(blocked, self._stalled >= p.patience, self._stalled >= p.lonely_patience)
         out = goals.copy()
+        if p.release_lifts:
+            self._release_lifts(positions, goal_positions)
         self._waiting = np.maximum(self._waiting - 1, 0)
         due &= self._waiting == 0  # a knot's members wait while one of them is lifted out
-        for cycle in self.knots(positions, goal_positions, distance > p.distance_threshold, due):
-            self._untie(step, cycle, positions, goals)
-            due[cycle] = False
+        idle = (progress < p.min_progress) & (distance > p.distance_threshold)
+        self._idle = np.where(idle, self._idle + 1, 0)
+        self._untie_knots(step, positions, goals, distance, due)
         for i in np.flatnonzero(due & (self._detour_left == 0)):
             angle, hold = p.angle_deg, p.hold
             if self._repeats[i] >= p.escalate_after:
