@@ -304,6 +304,7 @@ GENERATED = {
     "batched_qp.json": ("admm", "local-solver-candidates", batched_qp_experiment),
     "bench-random-fast-qp.json": ("controller", "knot-rule", bench_experiment),
     "bench-random-fast-ipopt.json": ("controller", "random-fast-tuning", bench_experiment),
+    "bench-random-fast-qp-knots.json": ("controller", "random-fast-tuning-ipopt", bench_experiment),
 }
 """Raw benchmark output file -> (record, the experiment it follows on that record's page, builder)."""
 
