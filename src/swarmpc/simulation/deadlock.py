@@ -41,12 +41,12 @@ with the workspace known, a cycle of unsettled agents each within the clearance 
 not count) is untied instead, as soon as one member has stalled or the members together made
 next to no progress to their goals over ``knot_patience`` steps (a pair at rest short of free
 goals is spared by the free-goal rule, a pair sliding round each other is not slow, only
-stuck). The member lifted least so far (then the one that has gone
-longest without progress) climbs (or descends, whichever side has more room) by ``lift`` and
-heads over its own goal for at most ``lift_hold`` steps, while the others keep their goals and
-wait; the layer clears and each slides into its slot. The lift ends early once the knot has come
-apart, the member's goal is free and the straight way to it clear (``release_lifts``): holding it
-out of the layer after that only delays it. Where the way out runs into agents parked just over and under the knot (or
+stuck). The member lifted least so far (then the one that has gone longest without progress)
+climbs (or descends, whichever side has more room) by ``lift`` and heads over its own goal for
+at most ``lift_hold`` steps, while the others keep their goals and wait; the layer clears and
+each slides into its slot. The lift ends early once the knot has come apart, the member's goal
+is free and the straight way to it clear (``release_lifts``): holding it out of the layer after
+that only delays it. Where the way out runs into agents parked just over and under the knot (or
 the ceiling is too close), the member steps out sideways instead, across the line to its goal,
 on the side that keeps farthest from the others: a pair swapping in a layer between parked
 agents cannot pass over or under each other, only side by side.
@@ -360,15 +360,14 @@ class DeadlockResolver:
         knot are no longer ``due`` (in place)."""
         p, window = self.policy, self.policy.knot_patience
         unsettled = distance > p.distance_threshold
-        starts, before = due.copy(), None
+        starts, before, needed = due.copy(), None, 0.0
         if window is not None:
             self._recent = [*self._recent[-window:], distance]
             if len(self._recent) > window:
-                before = self._recent[0]
+                before, needed = self._recent[0], p.knot_progress * window  # per member
                 starts |= unsettled & (self._waiting == 0)
         for cycle in self.knots(positions, self.model.position(goals), unsettled, starts):
-            stuck = before is not None and window is not None and (
-                before[cycle].sum() - distance[cycle].sum() < p.knot_progress * window * len(cycle))
+            stuck = before is not None and before[cycle].sum() - distance[cycle].sum() < needed * len(cycle)
             if due[cycle].any() or stuck:
                 self._untie(step, cycle, positions, goals)
                 due[cycle] = False
@@ -378,6 +377,8 @@ class DeadlockResolver:
         ``corridor_margin`` of another member's goal) and whose member can go home now: its goal
         is free and the straight way to it clear of every other agent (``release_lifts``). The
         knot's other members stop waiting."""
+        if not self._lifted:
+            return
         free = self.goal_free(positions, goals)
         gaps = self._goal_gaps(positions, goals, self.clearance + self.policy.corridor_margin)
         for lifter, cycle in list(self._lifted.items()):
