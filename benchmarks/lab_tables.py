@@ -305,6 +305,7 @@ GENERATED = {
     "bench-random-fast-qp.json": ("controller", "knot-rule", bench_experiment),
     "bench-random-fast-ipopt.json": ("controller", "random-fast-tuning", bench_experiment),
     "bench-random-fast-qp-knots.json": ("controller", "random-fast-tuning-ipopt", bench_experiment),
+    "bench-random-stiff-qp.json": ("controller", "random-fast-tuning-knots", bench_experiment),
 }
 """Raw benchmark output file -> (record, the experiment it follows on that record's page, builder)."""
 
