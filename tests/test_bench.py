@@ -89,6 +89,19 @@ def test_aggregate_rates_and_cost_gap():
     assert markdown_table([row]).rstrip().endswith("| 1.50 | 0.75 |")
 
 
+def test_the_table_shows_how_far_runs_left_the_workspace_only_when_one_did():
+    inside = [CaseOutcome(**{**outcome("random", 8, seed, "admm", 1.0).__dict__, "workspace_excursion_m": 0.0})
+              for seed in (0, 1)]
+    (row,) = aggregate(inside)
+    assert row["workspace_excursion_m_max"] == 0.0
+    assert "outside workspace" not in markdown_table([row])
+    out = [CaseOutcome(**{**outcome("random", 8, 2, "admm", 1.0).__dict__, "workspace_excursion_m": 0.063})]
+    (row,) = aggregate(inside + out + [outcome("random", 8, 3, "admm", 1.0)])  # one run recorded none
+    assert row["workspace_excursion_m_max"] == pytest.approx(0.063)
+    table = markdown_table([row])
+    assert "outside workspace max m |" in table and table.rstrip().endswith("| 0.063 |")
+
+
 @given(k_step=st.floats(0.0, 3.0), k_agent=st.floats(-1.0, 2.0), scale=st.floats(0.1, 100.0))
 @settings(max_examples=25, deadline=None)
 def test_growth_exponent_recovers_a_power_law(k_step, k_agent, scale):
@@ -146,6 +159,7 @@ def test_real_case_recomputes_safety_from_the_trajectory():
     assert result.copies_mean is not None and 0.0 <= result.copies_mean <= 2.0  # at most the 2 others
     assert len(result.agent_step_ms) == 3 * result.steps and result.iterations
     assert result.collisions == 0 and result.min_separation_ratio >= 1.0
+    assert result.workspace_excursion_m is not None and 0.0 <= result.workspace_excursion_m < 1e-3
     tolerance = BenchCase("random", 3, 0).scenario().stop.goal_tolerance
     assert (not result.unreached) == result.all_reached == (result.worst_goal_distance <= tolerance + 1e-9)
 

@@ -72,6 +72,9 @@ METHODS = ("admm", "centralized")
 LOCAL_STEPS = ("ipopt", "qp")
 """The ADMM agents' local steps a case can use (``solver.local``)."""
 CENTRAL_ROW = "centralized"
+EXCURSION_SHOWN = 1e-3
+"""[m] how far outside the workspace box a row's runs must have got for the table to show the
+column (below it: the solvers' tolerances)."""
 """The local step (``local``) of a report row of centralised runs only: a size at which no ADMM
 run was measured (:func:`aggregate`)."""
 DEFAULT_LOCAL: str = SolverConfig.model_fields["local"].default
@@ -177,6 +180,10 @@ class CaseOutcome:
     local_fallbacks: int | None = None
     """Local solves the QP local step failed and IPOPT answered instead (``summary.json``
     ``local_fallbacks``; 0 on the IPOPT local step); None in a report written before it was recorded."""
+    workspace_excursion_m: float | None = None
+    """Farthest an agent got outside the workspace box [m] (``summary.json``
+    ``max_workspace_excursion``); None without a workspace or in a report written before it was
+    recorded."""
     min_footprint_distance: float | None = None
     """Smallest exact distance between two agents' footprints over the run [m] (a swarm with cars;
     None otherwise). ``min_separation_ratio`` of such a run is that of ``summary.json``, between
@@ -238,6 +245,7 @@ def run_case(case: BenchCase, runs_dir: Path | None = None) -> CaseOutcome:
         overshoot_max_m=max(summary["overshoot_m"], default=None),
         lone_makespan_s=None if lone is None or np.isnan(lone).any() else float(lone.max()),
         interaction_ratio=None if lone is None else interaction_ratio(summary["makespan_s"], lone),
+        workspace_excursion_m=summary["max_workspace_excursion"],
         min_footprint_distance=footprint_gap,
     )
 
@@ -372,6 +380,8 @@ def aggregate(outcomes: Sequence[CaseOutcome]) -> list[dict[str, Any]]:
             "time_to_goal_s_median": _percentile(reached_times, 50),
             "makespan_s_median": _percentile(makespans, 50),
             "overshoot_m_max": max((o.overshoot_max_m for o in runs if o.overshoot_max_m is not None), default=None),
+            "workspace_excursion_m_max": max(
+                (o.workspace_excursion_m for o in runs if o.workspace_excursion_m is not None), default=None),
             "interaction_ratio_median": _percentile(ratios, 50),
             "step_ms_median": _percentile(steps, 50), "step_ms_p95": _percentile(steps, 95),
             "critical_path_ms_median": _percentile(critical, 50), "critical_path_ms_p99": _percentile(critical, 99),
@@ -478,14 +488,18 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The benchmark table (one line per family, swarm size and ADMM local step). ``local
     fallbacks``: the local solves the QP local step handed to IPOPT, over the row's runs. A last
     column ``min footprint gap m`` (the exact distance between cars' footprints) is there when a
-    row has one: a table of point swarms only stays as it was."""
+    row has one: a table of point swarms only stays as it was. So is a column ``outside workspace
+    max m`` (how far an agent got outside the workspace box), when a row's runs left it by more
+    than :data:`EXCURSION_SHOWN`."""
     footprints = any(r.get("min_footprint_distance_m") is not None for r in rows)
+    excursions = any((r.get("workspace_excursion_m_max") or 0.0) > EXCURSION_SHOWN for r in rows)
     header = ("| family | M | local | runs | all reached | collision-free | timed out | min sep/Δ | time to goal s "
               "| makespan s | overshoot max m | makespan vs lone "
               "| step ms median | p95 | critical path ms median | p99 | deadline misses "
               "| per-agent ms median | p95 | p99 | wall s per run | ADMM it. mean | max | failures "
               "| local fallbacks | cost vs central | central step ms | copies per agent | planes per agent |"
-              + (" min footprint gap m |" if footprints else ""))
+              + (" min footprint gap m |" if footprints else "")
+              + (" outside workspace max m |" if excursions else ""))
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         lines.append("| " + " | ".join([
@@ -504,6 +518,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
             _cell(r["cost_gap_pct_median"], "{:+.1f}%"), _cell(r["central_step_ms_median"]),
             _cell(r.get("copies_mean"), "{:.2f}"), _cell(r.get("planes_mean"), "{:.2f}"),
             *([_cell(r.get("min_footprint_distance_m"), "{:.3f}")] if footprints else []),
+            *([_cell(r.get("workspace_excursion_m_max"), "{:.3f}")] if excursions else []),
         ]) + " |")
     return "\n".join(lines) + "\n"
 
@@ -686,6 +701,7 @@ _OUTCOME_CHECKS: Mapping[str, tuple[Callable[[Any], bool], str]] = MappingProxyT
     "critical_path_ms": (lambda v: v is None or _is_finite_list(v), "a list of finite numbers or null"),
     "deadline_misses": (lambda v: v is None or _is_count(v), "a count or null"),
     "local_fallbacks": (lambda v: v is None or _is_count(v), "a count or null"),
+    "workspace_excursion_m": (_is_finite_or_none, "a number or null"),
     "min_footprint_distance": (_is_finite_or_none, "a number or null"),
 })  # fmt: skip
 """What each field of a ``bench.json`` run must hold (what :func:`write_report` writes)."""

@@ -153,6 +153,11 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
         "is its footprint's penetration depth by the exact distance (minus its least clearance when outside).",
     ),
     KeyDoc(
+        "max_workspace_excursion", "number or null", "m", "always",
+        "Farthest any agent's position (a car's reference point) got outside the workspace box over the run "
+        "(0: never outside); null without a `workspace`.",
+    ),
+    KeyDoc(
         "time_to_goal_s", "list of M numbers or nulls", "s", "always",
         "Per agent: the first time from which it stays within `stop.goal_tolerance` of its goal to the end "
         "of the run; null if it never does.",

@@ -89,6 +89,20 @@ def car_safety(scn: Scenario, states: np.ndarray) -> dict[str, Any]:
     return out
 
 
+def workspace_excursion(scn: Scenario, states: np.ndarray) -> float | None:
+    """Farthest any agent's position (the state rows the workspace bounds: a point agent's centre,
+    a car's reference point) got outside the workspace box over the run [m]; 0.0 when it never
+    left it, None without a ``workspace``. The local problems hold the box from their first free
+    step on, so an agent that cannot stop in time (no speed limit, a 1 s horizon) can still
+    coast past a wall."""
+    if scn.workspace is None:
+        return None
+    lower, upper = scn.bounds()
+    positions = np.asarray(states, float)[..., : scn.dim]
+    outside = np.maximum(lower - positions, positions - upper)
+    return float(max(outside.max(), 0.0))
+
+
 def closed_loop_cost(states: np.ndarray, inputs: np.ndarray, scn: Scenario) -> float:
     """sum_t (s_t - s_g)' Q (s_t - s_g) + u_t' R u_t over the applied steps, summed over agents
     (with cars: each agent's own weights, a car's heading error wrapped into [-pi, pi])."""
@@ -195,6 +209,7 @@ def summarize(
         "min_separation_inf": _finite_or_none(separation),
         "min_separation_ratio": _finite_or_none(float(ratio)),
         "max_obstacle_penetration": penetration,
+        "max_workspace_excursion": workspace_excursion(scn, states),
         "max_slack": float(max_slack),
         "cost": closed_loop_cost(states, inputs, scn),
         "step_time_ms": stats(step_times, 1000.0),
