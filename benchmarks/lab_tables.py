@@ -306,6 +306,7 @@ GENERATED = {
     "bench-random-fast-ipopt.json": ("controller", "random-fast-tuning", bench_experiment),
     "bench-random-fast-qp-knots.json": ("controller", "random-fast-tuning-ipopt", bench_experiment),
     "bench-random-stiff-qp.json": ("controller", "random-fast-tuning-knots", bench_experiment),
+    "bench-random-stiff-speed-qp.json": ("controller", "random-stiff-tuning", bench_experiment),
 }
 """Raw benchmark output file -> (record, the experiment it follows on that record's page, builder)."""
 
