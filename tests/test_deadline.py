@@ -21,6 +21,7 @@ from swarmpc.simulation.controller import Controller
 from swarmpc.simulation.loop import simulate
 from swarmpc.simulation.results import deadline_summary, write_run
 from swarmpc.solvers.admm import StepClock
+from swarmpc.solvers.executors import SerialExecutor
 
 CROSSING_FROM = 20
 """paper-2d's agents couple from step 23 on: from here on a step iterates."""
@@ -186,3 +187,46 @@ def test_bench_reports_critical_path_per_agent_p99_and_wall_time_and_reads_older
     (old_row,) = aggregate(load_outcomes(tmp_path / "old"))
     assert old_row["critical_path_ms_median"] is None and old_row["deadline_misses"] is None
     assert old_row["agent_ms_p99"] == row["agent_ms_p99"]
+
+
+def test_the_clock_keeps_its_reserve_free_of_iterations():
+    """An iteration that would fit the deadline alone is refused when the reserve for the safety
+    passes would not fit after it."""
+    for reserve, expected in ((0.0, True), (0.2, True), (0.31, False)):
+        fake = FakeTime()
+        clock = StepClock(deadline=1.0, clock=fake.perf_counter, reserve=reserve)
+        assert clock.next_iteration()
+        fake.now += 0.35
+        assert clock.next_iteration() is expected, reserve  # 0.35 + 0.35 + reserve vs 1
+        assert clock.stopped is not expected
+
+
+class BatchLog(SerialExecutor):
+    """The serial executor, keeping the agents and neighbours of every batch of repair requests."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.batches: list[list[tuple[int, tuple[int, ...]]]] = []
+
+    def solve(self, requests):  # type: ignore[no-untyped-def]
+        if requests and all(r.repair for r in requests):
+            self.batches.append([(r.agent, r.neighbours) for r in requests])
+        return super().solve(requests)
+
+
+def test_a_deadline_stop_repairs_uncoupled_agents_in_one_batch():
+    """The repair pass asks runs of agents that hold no copy of each other in one batch (their
+    answers cannot depend on each other), and the plans stay apart."""
+    scn = builtin_scenario("random", agents=16, dim=3, seed=0).with_updates(
+        **{"solver.deadline": 1e-3, "solver.local": "qp", "stop.max_steps": 3})
+    log = BatchLog()
+    try:
+        result = simulate(scn, executor=log)
+    finally:
+        log.close()
+    assert result.summary["collisions"] == 0
+    assert log.batches and max(len(batch) for batch in log.batches) > 1
+    for batch in log.batches:
+        agents = [agent for agent, _ in batch]
+        assert len(set(agents)) == len(agents)
+        assert not any(other in agents for _, neighbours in batch for other in neighbours)

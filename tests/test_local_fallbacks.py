@@ -83,3 +83,22 @@ def test_a_refusing_qp_path_is_counted_in_every_step(tmp_path):
     assert counts.shape == (6,) and np.all(counts > 0)  # every step solved something, on IPOPT
     assert summary["local_fallbacks"] == int(counts.sum()) == tally.fallbacks
     assert summary["solver_failures"] == 0  # IPOPT answered every call
+
+
+def test_under_a_deadline_a_refusing_qp_path_hands_nothing_to_ipopt(tmp_path):
+    """An IPOPT call does not fit a step's budget: with ``solver.deadline`` a failed QP call is a
+    failed local step (the agent's fallback rules answer it), never an IPOPT solve."""
+    scn = circle("qp").with_updates(**{"solver.deadline": 0.1})
+    s, bodies = OCPSettings.from_scenario(scn), planner_bodies(scn)
+    config = ADMMConfig.from_options(scn.solver, scn.collision)
+    tally = TallyExecutor()
+    agents = LocalAgentFactory.for_config(s, bodies, config, qp_backend=RefusingBackend)
+    solver = ADMMSolver(s, scn.num_agents, bodies, config, tally, agents=agents)
+    try:
+        summary, counts = written(scn, tmp_path / "run", solver=solver)
+    finally:
+        solver.close()
+        tally.close()
+    assert summary["local_fallbacks"] == 0 == tally.fallbacks and not counts.any()
+    assert summary["solver_failures"] > 0  # the refused calls failed, and nothing else answered them
+    assert summary["collisions"] == 0

@@ -226,6 +226,8 @@ class LocalAgent:
         self.cache = cache if cache is not None else AnswerCache()
         self._fallbacks = 0
         """Calls of the current request that IPOPT answered for the QP path."""
+        self._handover = True
+        """The current request's :attr:`LocalRequest.handover`."""
         self._solution: NLPSolution | None = None
         """The last successful solve: the primal (and dual) start of the next one of the same shape."""
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
@@ -237,6 +239,7 @@ class LocalAgent:
             return lone
         self.cache.state = request.state
         self._fallbacks = 0
+        self._handover = request.handover
         if not request.neighbours:
             self.multipliers.clear()
         elif not request.repair:
@@ -279,7 +282,10 @@ class LocalAgent:
         self, ladder: AgentLadder, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray,
         fixed: dict[str, Any] | None = None, **sizes: Any,
     ) -> NLPSolution:
-        """``ladder.solve``, counting the calls IPOPT answered for a failed QP path."""
+        """``ladder.solve`` (IPOPT behind a failed QP call only if the request allows it), counting
+        the calls IPOPT answered for a failed QP path."""
+        if isinstance(ladder, QPLocalSolverLadder) and not self._handover:
+            sizes = {**sizes, "handover": False}
         solution = ladder.solve(params, guess, fixed, **sizes)
         self._fallbacks += isinstance(solution, FallbackSolution)
         return solution

@@ -71,11 +71,16 @@ class StepClock:
         Critical-path budget of the step [s]; None: no deadline.
     clock : callable
         The time in seconds (monotonic); the step starts when the clock object is made.
+    reserve : float
+        Critical-path seconds kept free of ADMM iterations for the safety passes that end a step
+        stopped by the deadline (the solver passes what the last such passes took).
     """
 
-    def __init__(self, deadline: float | None = None, clock: Callable[[], float] = time.perf_counter) -> None:
+    def __init__(self, deadline: float | None = None, clock: Callable[[], float] = time.perf_counter,
+                 reserve: float = 0.0) -> None:
         self.deadline = deadline
         self.clock = clock
+        self.reserve = reserve
         self.started = clock()
         self.stopped = False
         """True once :meth:`next_iteration` refused an iteration for the deadline."""
@@ -98,12 +103,12 @@ class StepClock:
 
     def next_iteration(self) -> bool:
         """Whether to start another ADMM iteration. No (and :attr:`stopped`) when the critical path
-        so far plus the last iteration's share of it would exceed the deadline: the last iteration
-        is the estimate of the next. The first iteration always runs: without it there is no plan
-        to make safe."""
+        so far plus the last iteration's share of it plus the :attr:`reserve` would exceed the
+        deadline: the last iteration is the estimate of the next. The first iteration always runs:
+        without it there is no plan to make safe."""
         now = self.elapsed()[1]
         last, self._iteration_began = self._iteration_began, now
-        if last is None or self.deadline is None or now + (now - last) <= self.deadline:
+        if last is None or self.deadline is None or now + (now - last) + self.reserve <= self.deadline:
             return True
         self.stopped = True
         return False

@@ -58,6 +58,11 @@ class LocalRequest:
     see :func:`~swarmpc.solvers.admm.graph.separating_planes`."""
     plane_offsets: np.ndarray | None = None
     """(P, K) offsets of those planes: normal' p_k >= offset_k at each constrained step k."""
+    handover: bool = True
+    """Whether a call the QP local step fails may be handed to IPOPT (``ADMMConfig.local`` "qp").
+    False under a deadline: an IPOPT call takes tens to hundreds of ms, more than a step's budget,
+    so a failed QP call is a failed local step, answered by the agent's rules for one (last plan
+    within a step, a verified current plan or the fallback in a repair)."""
 
     @property
     def num_planes(self) -> int:
@@ -163,4 +168,5 @@ class StepRequests:
             rescue=rescue,
             plane_normals=normals,
             plane_offsets=offsets,
+            handover=self.config.deadline is None,
         )

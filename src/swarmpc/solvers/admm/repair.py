@@ -9,6 +9,7 @@ again, and a fallback that breaks the separation from another plan is planned ar
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -104,20 +105,26 @@ class Repair:
         max(Delta_ij) + d_min of that fallback re-plans once more against every final plan
         (evidence: docs/lab/admm.md#spread-scaling-first). ``agents``: re-plan only these (in this
         order) and then their neighbours as above; None: every coupled agent, highest index first
-        (a tie-break; docs/lab/admm.md#closing-the-gap)."""
+        (a tie-break; docs/lab/admm.md#closing-the-gap).
+
+        Consecutive agents of that order that hold no copy of each other are asked in one batch
+        (:func:`independent_run`): the answers are those of asking them one after another, and
+        the batch costs the step's critical path only its slowest re-plan."""
         repaired = list(results)
         neighbours = graph.neighbours
-        order = list(range(len(results)))[::-1] if agents is None else list(agents)
+        pending = deque(i for i in (list(range(len(results)))[::-1] if agents is None else agents) if neighbours[i])
         retried: set[int] = set()
-        for i in order:
-            if not neighbours[i]:
-                continue
+        while pending:
+            batch = independent_run(pending, neighbours)
             # a first failure re-plans at the end (its fallback is provisional); the retry and the
             # re-plan of a stranded fallback are final and may rescue
-            repaired[i] = self._replan(i, graph, z, rho, repaired, rescue=agents is not None or i in retried)
-            if not repaired[i].success and i not in retried:
-                retried.add(i)
-                order.append(i)
+            rescue = [agents is not None or i in retried for i in batch]
+            for i, answer in zip(batch, self._replan_all(batch, graph, z, rho, repaired, rescue), strict=True):
+                repaired[i] = answer
+            for i in batch:
+                if not repaired[i].success and i not in retried:
+                    retried.add(i)
+                    pending.append(i)
         d_min, largest = self.safety.settings.d_min, self.safety.largest_delta
         for failed in [k for k in range(len(results)) if not repaired[k].success]:
             for i in neighbours[failed]:
@@ -131,10 +138,35 @@ class Repair:
         rescue: bool = True,
     ) -> LocalResult:
         """Agent ``i``'s answer against its neighbours' current ``plans``, held fixed."""
+        return self._replan_all([i], graph, z, rho, plans, [rescue])[0]
+
+    def _replan_all(
+        self, agents: list[int], graph: CouplingGraph, z: np.ndarray, rho: float, plans: list[LocalResult],
+        rescue: list[bool],
+    ) -> list[LocalResult]:
+        """The answers of ``agents`` (no two of them coupled) against their neighbours' current
+        ``plans``, held fixed, asked in one batch: none of them sees another's plan, so the answers
+        are those of asking them one after another, and the batch costs the critical path only
+        its slowest re-plan."""
         s = self.requests.settings
-        others = list(graph.neighbours[i])
-        pinned = (np.array([plans[j].states for j in others]), np.array([plans[j].inputs for j in others]))
-        own_z = z.copy()
-        own_z[i] = s.model.position(plans[i].states[s.first_constrained_step:]).T
-        request = self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=rescue)
-        return self.solve([request])[0]
+        requests = []
+        for i, last_attempt in zip(agents, rescue, strict=True):
+            others = list(graph.neighbours[i])
+            pinned = (np.array([plans[j].states for j in others]), np.array([plans[j].inputs for j in others]))
+            own_z = z.copy()
+            own_z[i] = s.model.position(plans[i].states[s.first_constrained_step:]).T
+            requests.append(self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=last_attempt))
+        return self.solve(requests)
+
+
+def independent_run(pending: deque[int], neighbours: Sequence[Sequence[int]]) -> list[int]:
+    """Take from the front of ``pending`` the longest run of distinct agents no two of which are
+    coupled (at least one agent): re-planning them together changes no answer of the sequential
+    order, since each agent's problem holds only its neighbours' plans."""
+    batch = [pending.popleft()]
+    while pending:
+        nxt = pending[0]
+        if nxt in batch or any(nxt in neighbours[b] or b in neighbours[nxt] for b in batch):
+            break
+        batch.append(pending.popleft())
+    return batch

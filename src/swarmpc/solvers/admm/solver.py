@@ -93,6 +93,9 @@ class ADMMSolver:
         """The current step's clock: every local step is asked through it (:meth:`_solve`)."""
         self._local_fallbacks = 0
         """The current step's local solves the QP path failed and IPOPT answered (:meth:`_solve`)."""
+        self._safety_reserve = 0.0
+        """Critical-path seconds the safety passes of the last step that repaired took: under a
+        deadline, the next step keeps that much free of ADMM iterations (:class:`StepClock`)."""
 
     def close(self) -> None:
         """Close the executor the solver made for itself (never one it was given)."""
@@ -137,8 +140,9 @@ class ADMMSolver:
         repair pass (:class:`~swarmpc.solvers.admm.repair.Repair`).
 
         With ``config.deadline``, ADMM is anytime: before each iteration after the first, the
-        step's critical path so far plus the last iteration's share of it is compared with the
-        deadline (:class:`StepClock`); when it would overrun, no further iteration starts and the
+        step's critical path so far plus the last iteration's share of it plus a reserve (what the
+        safety passes of the last step that repaired took) is compared with the deadline
+        (:class:`StepClock`); when it would overrun, no further iteration starts and the
         step ends as one that ran out of iterations does, through the safety passes (the repair
         pass, re-run on conflicting candidate pairs, then re-plans around stranded fallbacks;
         always run after a deadline stop, even with ``repair`` off).
@@ -160,7 +164,7 @@ class ADMMSolver:
         Stopping depends on measured time, so a deadline that binds makes a run depend on the
         machine and its load.
         """
-        self._clock = StepClock(self.config.deadline)
+        self._clock = StepClock(self.config.deadline, reserve=self._safety_reserve)
         self._local_fallbacks = 0
         cfg, s = self.config, self.settings
         requests = StepRequests(s, cfg, self.bodies, states, goals, guess)
@@ -168,8 +172,11 @@ class ADMMSolver:
         z = starting_consensus(s.model.position(guess[:, s.first_constrained_step:]), self.carryover)
         run = self._iterate(requests, graph, z)
         repair = cfg.repair or self._clock.stopped  # a deadline stop is never left unrepaired
+        before = self._clock.elapsed()[1]
         safe = Repair(requests, self.safety, self._solve).make_safe(
             run.graph, run.z, run.rho, run.results, not run.converged and repair, repair)
+        if not run.converged and repair:
+            self._safety_reserve = self._clock.elapsed()[1] - before
         # the next step's consensus starts from the plans actually applied: after a repair pass
         # the average z of a non-converged iterate is not what any agent flies
         self.carryover = Carryover(own_positions(safe.results), safe.graph.neighbours,
