@@ -680,8 +680,9 @@ class SolverConfig(_Frozen):
     deadline: float | None = Field(
         default=None, gt=0,
         description="ADMM critical-path budget per MPC step [s] (what the step would take with one core per "
-        "agent): an iteration that would overrun it, or leave less room than the last repair pass took, is "
-        "not started, and the step ends through the repair pass; with solver.local qp a failed QP call is "
+        "agent): an iteration that would overrun it, or leave less room than the last repair pass took (up "
+        "to half the budget), is not started, and the step ends through the repair pass; with solver.local "
+        "qp a failed QP call is "
         "not handed to IPOPT. A deadline that binds makes the run depend on the machine's speed. null: no "
         "deadline (steps whose critical path exceeds dt still count in summary.json deadline_misses)",
     )

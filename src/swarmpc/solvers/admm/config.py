@@ -86,7 +86,7 @@ class ADMMConfig:
     copies (evidence: docs/lab/admm.md#separating-planes)."""
     deadline: float | None = None
     """Critical-path budget of one MPC step [s] (None: none): an iteration that would overrun it,
-    counting the critical path the last repair pass took as a reserve, is not started and the step
+    counting what the last repair pass took (at most half the deadline) as a reserve, is not started and the step
     ends through the repair pass (:class:`~swarmpc.solvers.admm.clock.StepClock`,
     :meth:`ADMMSolver.plan`). With ``local`` "qp" a failed QP call is not handed to IPOPT, whose
     calls take longer than a step's budget (:attr:`LocalRequest.handover`)."""

@@ -94,8 +94,8 @@ class ADMMSolver:
         self._local_fallbacks = 0
         """The current step's local solves the QP path failed and IPOPT answered (:meth:`_solve`)."""
         self._safety_reserve = 0.0
-        """Critical-path seconds the safety passes of the last step that repaired took: under a
-        deadline, the next step keeps that much free of ADMM iterations (:class:`StepClock`)."""
+        """Critical-path seconds the safety passes of the last step that repaired took (see
+        :meth:`_reserve`)."""
 
     def close(self) -> None:
         """Close the executor the solver made for itself (never one it was given)."""
@@ -140,8 +140,8 @@ class ADMMSolver:
         repair pass (:class:`~swarmpc.solvers.admm.repair.Repair`).
 
         With ``config.deadline``, ADMM is anytime: before each iteration after the first, the
-        step's critical path so far plus the last iteration's share of it plus a reserve (what the
-        safety passes of the last step that repaired took) is compared with the deadline
+        step's critical path so far plus the last iteration's share of it plus a reserve for the
+        safety passes (:meth:`_reserve`) is compared with the deadline
         (:class:`StepClock`); when it would overrun, no further iteration starts and the
         step ends as one that ran out of iterations does, through the safety passes (the repair
         pass, re-run on conflicting candidate pairs, then re-plans around stranded fallbacks;
@@ -164,7 +164,7 @@ class ADMMSolver:
         Stopping depends on measured time, so a deadline that binds makes a run depend on the
         machine and its load.
         """
-        self._clock = StepClock(self.config.deadline, reserve=self._safety_reserve)
+        self._clock = StepClock(self.config.deadline, reserve=self._reserve())
         self._local_fallbacks = 0
         cfg, s = self.config, self.settings
         requests = StepRequests(s, cfg, self.bodies, states, goals, guess)
@@ -182,6 +182,15 @@ class ADMMSolver:
         self.carryover = Carryover(own_positions(safe.results), safe.graph.neighbours,
                                    run.rho if cfg.adaptive_rho else cfg.rho)
         return self._plan_step(run, safe, repaired=not run.converged and repair)
+
+    def _reserve(self) -> float:
+        """Critical-path seconds a step under a deadline keeps free of ADMM iterations for its
+        safety passes: what the last repairing step's passes took, at most half the deadline. An
+        uncapped reserve feeds itself (a step left one iteration needs a long repair, which leaves
+        the next step one iteration; random 3D M = 32 took 9.0 s to its goals instead of 5.5 s:
+        docs/lab/admm.md#deadline-repair-batches)."""
+        deadline = self.config.deadline
+        return 0.0 if deadline is None else min(self._safety_reserve, 0.5 * deadline)
 
     def _iterate(self, requests: StepRequests, graph: CouplingGraph, z: np.ndarray) -> Iterations:
         """ADMM iterations until the stop rule holds on plans that pass the checks, ``max_iter``,
