@@ -4,6 +4,7 @@ a traceback, like Ctrl-C at any later moment."""
 
 from __future__ import annotations
 
+import signal
 import sys
 
 from swarmpc._interrupts import INTERRUPTED, caused_by_interrupt
@@ -11,6 +12,13 @@ from swarmpc._interrupts import INTERRUPTED, caused_by_interrupt
 
 def main() -> None:
     interrupted: list[BaseException] = []
+    received: list[int] = []
+
+    def on_sigint(signum: int, frame: object) -> None:
+        # Python's own reaction (KeyboardInterrupt), remembered: a compiled extension whose
+        # initialisation it interrupts may report a plain import error that does not chain it
+        received.append(signum)
+        raise KeyboardInterrupt
 
     def note_interrupts(unraisable: sys.UnraisableHookArgs) -> None:
         # a Ctrl-C that lands in a callback the import machinery runs (a module lock's weakref
@@ -21,15 +29,17 @@ def main() -> None:
             sys.__unraisablehook__(unraisable)
 
     sys.unraisablehook = note_interrupts
+    previous = signal.signal(signal.SIGINT, on_sigint)
     try:
         from swarmpc.cli import main as cli_main
     except BaseException as error:  # noqa: BLE001 - only interrupts are swallowed, see below
-        if not caused_by_interrupt(error):
+        if not (caused_by_interrupt(error) or received):
             raise
         interrupted.append(error)
     finally:
         sys.unraisablehook = sys.__unraisablehook__
-    if interrupted:
+        signal.signal(signal.SIGINT, previous)
+    if interrupted or received:
         sys.stderr.write("swarmpc: interrupted\n")
         sys.exit(INTERRUPTED)
     cli_main()
