@@ -845,23 +845,25 @@ class SequentialLocalQP:
         If the first QP is infeasible (the guess's certificates ask for a separation the
         dynamics cannot reach, e.g. a guess that cuts through a pinned neighbour's plan), the
         loop restarts once from the certificates of each fallback plan (coasting, braking). A
-        hard repair call that still fails is reported :data:`PROVEN_INFEASIBLE` when
-        :class:`SeparationProof` shows that no plan can keep clear of the pinned copies."""
+        hard repair call that fails is reported :data:`PROVEN_INFEASIBLE` when
+        :class:`SeparationProof` shows that no plan can keep clear of the pinned copies; such a
+        call skips the restarts, which no certificates could make feasible."""
         began = time.perf_counter()
         delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
         x, lin = self._start(guess, delta, pinned)
         tally: list[Any] = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
         answer, x, lin, converged = self._loop(params, x, lin, y, pinned, slack_caps, delta, tally)
-        for plan in self._fallback_plans(params) if not answer.solved and tally[0] == 1 else []:
+        proven = (not answer.solved and self.proof is not None and pinned is not None
+                  and self.proof.infeasible(params["x0"], pinned, delta))
+        restart = not answer.solved and tally[0] == 1 and not proven  # no certificates help a proven call
+        for plan in self._fallback_plans(params) if restart else []:
             start = x.copy()
             start[self.problem.layout.X] = plan
             lin = self.certify(*self.positions(start, pinned), delta)
             answer, x, lin, converged = self._loop(params, start, lin, None, pinned, slack_caps, delta, tally)
             if answer.solved:
                 break
-        status = f"qp_{answer.status.replace(' ', '_')}"
-        if not answer.solved and self.proof is not None and pinned is not None:
-            status = PROVEN_INFEASIBLE if self.proof.infeasible(params["x0"], pinned, delta) else status
+        status = PROVEN_INFEASIBLE if proven else f"qp_{answer.status.replace(' ', '_')}"
         wall = time.perf_counter() - began
         self.last_record = LoopRecord(tally[0], tally[1], tally[2], wall, converged, tally[3])
         if not answer.solved:
