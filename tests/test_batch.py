@@ -122,6 +122,13 @@ if __name__ == "__main__":
 """
 
 
+def _like_a_terminal() -> None:
+    """Ctrl-C's default disposition in the child, as a shell in the foreground gives it: a suite
+    started in the background (``cmd &`` in a script) hands its children SIGINT ignored, and a
+    batch keeps ignoring a signal its caller ignores."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _alive(pid: int) -> bool:
     """Whether ``pid`` is a process that still runs (a zombie waiting for its reaper does not)."""
     try:
@@ -138,7 +145,8 @@ def test_a_signalled_parent_exits_promptly_keeping_what_finished(tmp_path, sig, 
     script = tmp_path / "batch_script.py"
     script.write_text(textwrap.dedent(SCRIPT))
     parent = subprocess.Popen([sys.executable, str(script), str(tmp_path)], stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, start_new_session=True)
+                              stderr=subprocess.PIPE, text=True, start_new_session=True,
+                              preexec_fn=_like_a_terminal)
     try:
         deadline = time.monotonic() + 60
         while len([p for p in tmp_path.glob("*.pids") if " " in p.read_text()]) < 2:  # both long tasks run
