@@ -8,7 +8,8 @@ step) and an optional ``solver.deadline``, and appends one row to a JSON-lines f
 critical path of every step, which steps went through the repair pass, the deadline misses and
 the calls handed to IPOPT. To compare two versions of swarmpc, call it alternately under each
 checkout (``PYTHONPATH=<checkout>/src``) with a ``--tag`` each, seed by seed, so that both share
-the machine's load; ``--summarise`` pools the rows by size, deadline and tag.
+the machine's load; or compare two settings of one checkout (``--set KEY=VALUE``, a tag each);
+``--summarise`` pools the rows by size, deadline and tag.
 
     for s in 0 1 2 3 4; do for t in old new; do
       PYTHONPATH=$CHECKOUT_$t/src .venv/bin/python benchmarks/deadline_study.py --tag $t --agents 16 \\
@@ -32,12 +33,14 @@ TUNING = {"weights.Q": 10.0, "weights.R": 0.1, "limits.speed": 1.0, "solver.loca
 """The tuning to start from (docs/tuning.md), on the QP local step."""
 
 
-def fly(tag: str, agents: int, seed: int, deadline: float | None) -> dict[str, Any]:
-    """One run's row."""
+def fly(
+    tag: str, agents: int, seed: int, deadline: float | None, extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """One run's row; ``extra``: further scenario settings (dotted keys) of the variant."""
     from swarmpc.scenarios import builtin_scenario
     from swarmpc.simulation.loop import simulate
 
-    settings: dict[str, Any] = {**TUNING, "solver.deadline": deadline}
+    settings: dict[str, Any] = {**TUNING, "solver.deadline": deadline, **(extra or {})}
     scn = builtin_scenario("random", agents=agents, dim=3, seed=seed).with_updates(**settings)
     began = time.perf_counter()
     result = simulate(scn)
@@ -84,6 +87,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--agents", type=int, default=16)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--deadline", type=float, default=None)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a scenario setting of the variant (value as JSON), repeatable")
     parser.add_argument("--out", type=Path, default=None, help="append the row to this JSON-lines file")
     parser.add_argument("--summarise", type=Path, nargs="+", default=None, metavar="ROWS")
     args = parser.parse_args(argv)
@@ -92,7 +97,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         json.dump(summarise(rows), sys.stdout, indent=1)
         print()
         return 0
-    row = json.dumps(fly(args.tag, args.agents, args.seed, args.deadline))
+    extra = {key: json.loads(value) for key, _, value in (item.partition("=") for item in args.set)}
+    row = json.dumps(fly(args.tag, args.agents, args.seed, args.deadline, extra))
     print(row, flush=True)
     if args.out is not None:
         with args.out.open("a") as f:

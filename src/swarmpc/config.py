@@ -592,6 +592,11 @@ class QPOptions(_Frozen):
         default=5, ge=1, le=MAX_LOCAL_ITERATIONS,
         description="OSQP tests for termination every this many iterations.",
     )
+    check_dualgap: bool = Field(
+        default=True,
+        description="OSQP's duality-gap test for termination, on top of its residual tests. Every answer is "
+        "rebuilt and checked whatever OSQP's stopping test, so off trades only accuracy of the optimum.",
+    )
     margin: float = Field(
         default=1e-5, ge=0,
         description="Tightening [m] of every separation, plane, workspace and speed row against OSQP's primal "

@@ -115,6 +115,9 @@ class QPLocalOptions:
     check_termination: int = 5
     """OSQP tests for termination every this many iterations: a warm-started solve that needs only
     a few iterations stops soon after them instead of running to OSQP's default check interval."""
+    check_dualgap: bool = True
+    """OSQP's duality-gap termination test (on top of the residual tests). The plan is rebuilt and
+    checked whatever OSQP's stopping test, so turning it off trades only the optimum's accuracy."""
     margin: float = 1e-5
     """[m] tightening of every separation, plane, workspace and speed row: covers OSQP's primal
     tolerance (~eps_abs + eps_rel * |row| when polishing fails), so d_min itself is never eaten."""
@@ -561,7 +564,8 @@ class OSQPBackend:
         self._solver = osqp.OSQP()
         self._solver.setup(P, q, A, lower, upper, verbose=False, eps_abs=o.eps_abs, eps_rel=o.eps_rel,
                            max_iter=o.max_iter, polishing=o.polish, warm_starting=True,
-                           polish_refine_iter=3, check_termination=o.check_termination)
+                           polish_refine_iter=3, check_termination=o.check_termination,
+                           check_dualgap=o.check_dualgap)
 
     def update(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, P_data: np.ndarray | None,
                A_data: np.ndarray | None) -> None:
