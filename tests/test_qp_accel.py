@@ -22,7 +22,7 @@ from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.dynamics import discrete_matrices
 from swarmpc.model.geometry import box_signed_distance
 from swarmpc.solvers.admm import FallbackSolution, QPLocalSolverLadder
-from swarmpc.solvers.qp_local import PROVEN_INFEASIBLE, LocalShape, QPLocalLadder, box_covered
+from swarmpc.solvers.qp_local import PROVEN_INFEASIBLE, LocalShape, OSQPBackend, QPAnswer, QPLocalLadder, box_covered
 
 
 def settings(dim: int, accel: float | None = 1.0) -> OCPSettings:
@@ -124,3 +124,29 @@ def test_no_proof_without_pinned_copies_or_an_acceleration_limit():
     ladder = QPLocalLadder(s)
     assert ladder.stepper(LocalShape(1)).proof is None  # free copies: the neighbour can give way
     assert ladder.solve(params, guess, copies=1).status != PROVEN_INFEASIBLE
+
+
+class RefusingOSQP(OSQPBackend):
+    """OSQP that reports every solve failed."""
+
+    def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer:
+        answer = super().solve(x, y)
+        return QPAnswer(answer.x, answer.y, False, "refused", answer.iterations, answer.solver_time)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_retry_of_the_same_problem_skips_the_restarts_that_failed(dim):
+    """A failed call restarts from the coasting and the braking plan's certificates; a retry of
+    the same problem from another start (a repair retried from the agent's own plan) does not
+    run those two again, while a different problem does."""
+    s, params, guess, pinned = repair_problem(dim, standing_at=3.0)
+    stepper = QPLocalLadder(s, backend=RefusingOSQP).stepper(LocalShape(1, pinned=True))
+    copy = pinned["C0"][None]
+    assert not stepper.solve(params, guess, copy).success
+    assert stepper.last_record.rounds == 3  # the guess's certificates, then coasting, then braking
+    other_start = {**guess, "X": 0.5 * guess["X"]}
+    assert not stepper.solve(params, other_start, copy).success
+    assert stepper.last_record.rounds == 1
+    moved = {**params, "x0": params["x0"] + 0.01}
+    assert not stepper.solve(moved, guess, copy).success
+    assert stepper.last_record.rounds == 3

@@ -770,6 +770,9 @@ class SequentialLocalQP:
             shape.pinned and shape.pair_collision == "hard") else None
         """Decides failed repair calls that no solver can answer (:data:`PROVEN_INFEASIBLE`)."""
         self.last_record: LoopRecord | None = None
+        self._failed_restarts: bytes | None = None
+        """The problem (:meth:`_problem_key`) whose restarts failed last: a retry of the same
+        problem from another start (a repair retried from the agent's own plan) skips them."""
         self.vector_size = self.problem.layout.size + shape.copies * 2 * s.dim * s.num_constrained + sum(
             len(g) for _, g in s.obstacles) * s.num_constrained
         """Length of a solution's ``x_vec``: the QP's primal vector, then the certificates it was
@@ -851,7 +854,8 @@ class SequentialLocalQP:
         loop restarts once from the certificates of each fallback plan (coasting, braking). A
         hard repair call that fails is reported :data:`PROVEN_INFEASIBLE` when
         :class:`SeparationProof` shows that no plan can keep clear of the pinned copies; such a
-        call skips the restarts, which no certificates could make feasible."""
+        call skips the restarts, which no certificates could make feasible, and so does a call of
+        the very problem whose restarts failed last (a repair retried from another start)."""
         began = time.perf_counter()
         delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
         x, lin = self._start(guess, delta, pinned)
@@ -860,19 +864,35 @@ class SequentialLocalQP:
         proven = (not answer.solved and self.proof is not None and pinned is not None
                   and self.proof.infeasible(params["x0"], pinned, delta))
         restart = not answer.solved and tally[0] == 1 and not proven  # no certificates help a proven call
-        for plan in self._fallback_plans(params) if restart else []:
+        key = self._problem_key(params, pinned, slack_caps) if restart else None
+        for plan in self._fallback_plans(params) if restart and key != self._failed_restarts else []:
             start = x.copy()
             start[self.problem.layout.X] = plan
             lin = self.certify(*self.positions(start, pinned), delta)
             answer, x, lin, converged = self._loop(params, start, lin, None, pinned, slack_caps, delta, tally)
             if answer.solved:
                 break
+        if restart and not answer.solved:
+            self._failed_restarts = key
         status = PROVEN_INFEASIBLE if proven else f"qp_{answer.status.replace(' ', '_')}"
         wall = time.perf_counter() - began
         self.last_record = LoopRecord(tally[0], tally[1], tally[2], wall, converged, tally[3])
         if not answer.solved:
             return self._failed(x, status, wall, tally[1])
         return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged)
+
+    def _problem_key(
+        self, params: dict[str, Any], pinned: np.ndarray | None, slack_caps: dict[int, float] | None,
+    ) -> bytes:
+        """What the restarts' QPs depend on besides the fallback plans (which follow from the
+        measured state): the cost (its linear term, rho and the owner weight), the measured
+        state, the pinned copies, the pairs' Delta, the planes and the slack caps."""
+        parts = [self.problem.linear_cost(params), np.array([params["rho"], params["owner_weight"]], float),
+                 np.asarray(params["x0"], float),
+                 np.asarray(params["delta"], float), np.zeros(0) if pinned is None else pinned,
+                 np.array(sorted((slack_caps or {}).items()), float).ravel()]
+        parts += [np.asarray(params[f"{name}{p}"], float) for p in range(self.shape.planes) for name in ("Hn", "Hb")]
+        return b"".join(np.ascontiguousarray(part, float).tobytes() for part in parts)
 
     def _loop(
         self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray | None,
