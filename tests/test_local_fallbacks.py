@@ -59,6 +59,22 @@ def written(scn: Scenario, folder, **kwargs) -> tuple[dict, np.ndarray]:  # type
     return json.loads((folder / "summary.json").read_text()), counts
 
 
+def refused_run(scn: Scenario, folder) -> tuple[dict, np.ndarray, int]:  # type: ignore[no-untyped-def]
+    """Run ``scn`` by ADMM whose QP path refuses every solve, write its folder; (summary.json,
+    steps.npz ``local_fallbacks``, the hand-overs the agents reported through the executor)."""
+    s, bodies = OCPSettings.from_scenario(scn), planner_bodies(scn)
+    config = ADMMConfig.from_options(scn.solver, scn.collision)
+    tally = TallyExecutor()
+    agents = LocalAgentFactory.for_config(s, bodies, config, qp_backend=RefusingBackend)
+    solver = ADMMSolver(s, scn.num_agents, bodies, config, tally, agents=agents)
+    try:
+        summary, counts = written(scn, folder, solver=solver)
+    finally:
+        solver.close()
+        tally.close()
+    return summary, counts, tally.fallbacks
+
+
 @pytest.mark.parametrize(("local", "method"), [("qp", "admm"), ("ipopt", "admm"), ("ipopt", "centralized")])
 def test_the_run_folder_holds_the_count_per_step_and_its_sum(tmp_path, local, method):
     summary, counts = written(circle(local, method), tmp_path / "run")
@@ -70,18 +86,9 @@ def test_the_run_folder_holds_the_count_per_step_and_its_sum(tmp_path, local, me
 
 def test_a_refusing_qp_path_is_counted_in_every_step(tmp_path):
     scn = circle("qp")
-    s, bodies = OCPSettings.from_scenario(scn), planner_bodies(scn)
-    config = ADMMConfig.from_options(scn.solver, scn.collision)
-    tally = TallyExecutor()
-    agents = LocalAgentFactory.for_config(s, bodies, config, qp_backend=RefusingBackend)
-    solver = ADMMSolver(s, scn.num_agents, bodies, config, tally, agents=agents)
-    try:
-        summary, counts = written(scn, tmp_path / "run", solver=solver)
-    finally:
-        solver.close()
-        tally.close()
+    summary, counts, handed = refused_run(scn, tmp_path / "run")
     assert counts.shape == (6,) and np.all(counts > 0)  # every step solved something, on IPOPT
-    assert summary["local_fallbacks"] == int(counts.sum()) == tally.fallbacks
+    assert summary["local_fallbacks"] == int(counts.sum()) == handed
     assert summary["solver_failures"] == 0  # IPOPT answered every call
 
 
@@ -89,16 +96,7 @@ def test_under_a_deadline_a_refusing_qp_path_hands_nothing_to_ipopt(tmp_path):
     """An IPOPT call does not fit a step's budget: with ``solver.deadline`` a failed QP call is a
     failed local step (the agent's fallback rules answer it), never an IPOPT solve."""
     scn = circle("qp").with_updates(**{"solver.deadline": 0.1})
-    s, bodies = OCPSettings.from_scenario(scn), planner_bodies(scn)
-    config = ADMMConfig.from_options(scn.solver, scn.collision)
-    tally = TallyExecutor()
-    agents = LocalAgentFactory.for_config(s, bodies, config, qp_backend=RefusingBackend)
-    solver = ADMMSolver(s, scn.num_agents, bodies, config, tally, agents=agents)
-    try:
-        summary, counts = written(scn, tmp_path / "run", solver=solver)
-    finally:
-        solver.close()
-        tally.close()
-    assert summary["local_fallbacks"] == 0 == tally.fallbacks and not counts.any()
+    summary, counts, handed = refused_run(scn, tmp_path / "run")
+    assert summary["local_fallbacks"] == 0 == handed and not counts.any()
     assert summary["solver_failures"] > 0  # the refused calls failed, and nothing else answered them
     assert summary["collisions"] == 0

@@ -172,23 +172,23 @@ class ADMMSolver:
         z = starting_consensus(s.model.position(guess[:, s.first_constrained_step:]), self.carryover)
         run = self._iterate(requests, graph, z)
         repair = cfg.repair or self._clock.stopped  # a deadline stop is never left unrepaired
+        repaired = not run.converged and repair
         before = self._clock.elapsed()[1]
         safe = Repair(requests, self.safety, self._solve).make_safe(
-            run.graph, run.z, run.rho, run.results, not run.converged and repair, repair)
-        if not run.converged and repair:
+            run.graph, run.z, run.rho, run.results, repaired, repair)
+        if repaired:
             self._safety_reserve = self._clock.elapsed()[1] - before
         # the next step's consensus starts from the plans actually applied: after a repair pass
         # the average z of a non-converged iterate is not what any agent flies
         self.carryover = Carryover(own_positions(safe.results), safe.graph.neighbours,
                                    run.rho if cfg.adaptive_rho else cfg.rho)
-        return self._plan_step(run, safe, repaired=not run.converged and repair)
+        return self._plan_step(run, safe, repaired=repaired)
 
     def _reserve(self) -> float:
         """Critical-path seconds a step under a deadline keeps free of ADMM iterations for its
         safety passes: what the last repairing step's passes took, at most half the deadline. An
-        uncapped reserve feeds itself (a step left one iteration needs a long repair, which leaves
-        the next step one iteration; random 3D M = 32 took 9.0 s to its goals instead of 5.5 s:
-        docs/lab/admm.md#deadline-repair-batches)."""
+        uncapped reserve feeds itself: a step left one iteration needs a long repair, which leaves
+        the next step one iteration (evidence: docs/lab/admm.md#deadline-repair-batches)."""
         deadline = self.config.deadline
         return 0.0 if deadline is None else min(self._safety_reserve, 0.5 * deadline)
 
