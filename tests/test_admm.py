@@ -233,7 +233,8 @@ def test_neighbours_replan_around_a_fallback_they_did_not_see():
 @pytest.mark.parametrize("name", ["paper-2d", "paper-3d"])
 def test_a_loose_tolerance_still_stops_only_on_plans_kept_apart(name):
     """Consensus within tol (an RMS) bounds how far copies sit from the flown plans on average,
-    not at every step: at tol = 5 cm the residual test alone stops on own plans that overlap.
+    not at every step: at tol = 10 cm the residual test alone stops on own plans that overlap
+    (by 9 cm and more; at 5 cm the overlap depends on the last bits of the machine's arithmetic).
     The stop's check on the coupled pairs' own plans iterates on (or repairs) until they keep
     d_min / 2, recomputed here from the plans."""
     scn, states = approach_state(name, 26)
@@ -248,7 +249,7 @@ def test_a_loose_tolerance_still_stops_only_on_plans_kept_apart(name):
             return True
 
     def closest(check: bool) -> float:
-        solver = (ADMMSolver if check else ResidualsOnly)(s, 4, scn.delta_vector, ADMMConfig(tol=0.05))
+        solver = (ADMMSolver if check else ResidualsOnly)(s, 4, scn.delta_vector, ADMMConfig(tol=0.1))
         plan = solver.plan(states, goals, guess)
         positions = plan.states[:, s.first_constrained_step:, : s.dim]
         return min(point_box_distance(p - q, scn.delta_vector)

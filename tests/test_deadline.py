@@ -84,7 +84,7 @@ def test_a_tiny_deadline_stops_early_yet_every_plan_stays_safe(crossing):
     """1 ms: no step affords a second iteration. Each step ends through the repair pass, its
     plans keep the bodies apart, the overruns are counted, and the run goes on."""
     scn, states = crossing
-    tiny = scn.with_updates(**{"solver.deadline": 1e-3})
+    tiny = scn.with_updates(**{"solver.deadline": 1e-3, "solver.admm.deadline_repair": "sequential"})
     applied, plans, records = fly(tiny, states, 30)
     assert len(records) == 30
     stopped = [r.deadline_stop for r in records]
@@ -99,6 +99,24 @@ def test_a_tiny_deadline_stops_early_yet_every_plan_stays_safe(crossing):
     summary = deadline_summary(records, tiny)
     assert summary["deadline_s"] == 1e-3 and summary["deadline_stops"] == sum(stopped)
     assert summary["deadline_misses"] == sum(r.critical_path_s > 1e-3 for r in records) > 0
+
+
+def test_a_deadline_stop_by_selection_keeps_the_swarm_apart(crossing):
+    """paper-2d at its crossing under a 1 ms deadline: every step stops after one iteration and
+    ends by selection. Each agent flies its last iterate or the plan it flew before, shifted; the
+    plans and the flown states keep the bodies apart."""
+    scn, states = crossing
+    tiny = scn.with_updates(**{"solver.deadline": 1e-3, "solver.admm.deadline_repair": "select"})
+    applied, plans, records = fly(tiny, states, 25)
+    assert sum(r.deadline_stop for r in records) >= 10
+    d = scn.dim
+    assert count_body_collisions(applied[:, :, :d], scn.bodies) == 0
+    for k, plan in enumerate(plans):
+        assert count_body_collisions(np.transpose(plan[:, :, :d], (1, 0, 2)), scn.bodies) == 0, f"step {k}"
+    shifted = [np.allclose(plans[k][i][1:-1], plans[k - 1][i][2:], atol=1e-9)
+               for k in range(1, len(plans)) for i in range(len(states)) if records[k].deadline_stop]
+    assert any(shifted) and not all(shifted)  # some agents fell back to their committed plans, not all
+    assert np.linalg.norm(applied[-1, :, :d] - applied[0, :, :d], axis=1).min() > 0.1  # the swarm moved on
 
 
 def test_a_deadline_that_never_binds_changes_nothing(crossing):
@@ -218,7 +236,8 @@ def test_a_deadline_stop_repairs_uncoupled_agents_in_one_batch():
     """The repair pass asks runs of agents that hold no copy of each other in one batch (their
     answers cannot depend on each other), and the plans stay apart."""
     scn = builtin_scenario("random", agents=16, dim=3, seed=0).with_updates(
-        **{"solver.deadline": 1e-3, "solver.local": "qp", "stop.max_steps": 3})
+        **{"solver.deadline": 1e-3, "solver.local": "qp", "stop.max_steps": 3,
+           "solver.admm.deadline_repair": "sequential"})
     log = BatchLog()
     try:
         result = simulate(scn, executor=log)

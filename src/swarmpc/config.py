@@ -519,6 +519,13 @@ class ADMMOptions(_Frozen):
         "re-planned around. `false`: the last iterate's plans are applied as they are, which may leave pairs "
         "in conflict (a deadline stop is repaired anyway).",
     )
+    deadline_repair: Literal["sequential", "select"] = Field(
+        default="select",
+        description="How a step stopped by `solver.deadline` is made safe: `select` each agent flies its new plan "
+        "or its last step's plan shifted, chosen so every pair that can meet stays clear, and one agent of each "
+        "pair of those that conflict re-plans; `sequential` every coupled agent re-plans, one after another, "
+        "against its neighbours' plans (closer to the consensus optimum, overruns the deadline more often).",
+    )
     repair_rounds: int = Field(
         default=3, ge=1, le=100,
         description="Repair passes at most per step: after a pass, candidate pairs whose repaired plans conflict "

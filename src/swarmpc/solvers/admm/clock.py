@@ -8,12 +8,17 @@ critical path from those and decides whether another ADMM iteration fits the dea
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import fields
 from typing import Any
 
 from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, TimedResult
 from swarmpc.solvers.executors import Executor
+
+ESTIMATE_WINDOW = 3
+"""Iterations whose largest share of the critical path estimates the next one's
+(:meth:`StepClock.next_iteration`)."""
 
 
 class TimedAgent:
@@ -86,6 +91,7 @@ class StepClock:
         """True once :meth:`next_iteration` refused an iteration for the deadline."""
         self._overlap = 0.0
         self._iteration_began: float | None = None
+        self._shares: deque[float] = deque(maxlen=ESTIMATE_WINDOW)
 
     def elapsed(self) -> tuple[float, float]:
         """(wall time, critical path) of the step so far [s], read at one instant."""
@@ -103,12 +109,15 @@ class StepClock:
 
     def next_iteration(self) -> bool:
         """Whether to start another ADMM iteration. No (and :attr:`stopped`) when the critical path
-        so far plus the last iteration's share of it plus the :attr:`reserve` would exceed the
-        deadline: the last iteration is the estimate of the next. The first iteration always runs:
-        without it there is no plan to make safe."""
+        so far plus the estimate of the next iteration's share of it plus the :attr:`reserve` would
+        exceed the deadline: the estimate is the largest share of the last
+        :data:`ESTIMATE_WINDOW` iterations (an iteration's slowest agent varies from one iteration
+        to the next). The first iteration always runs: without it there is no plan to make safe."""
         now = self.elapsed()[1]
         last, self._iteration_began = self._iteration_began, now
-        if last is None or self.deadline is None or now + (now - last) + self.reserve <= self.deadline:
+        if last is not None:
+            self._shares.append(now - last)
+        if last is None or self.deadline is None or now + max(self._shares) + self.reserve <= self.deadline:
             return True
         self.stopped = True
         return False

@@ -91,6 +91,15 @@ class ADMMConfig:
     :meth:`ADMMSolver.plan`). With ``local`` "qp" a failed QP call is not handed to IPOPT, whose
     calls take longer than a step's budget (:attr:`LocalRequest.handover`)."""
 
+    deadline_repair: Literal["sequential", "select"] = "select"
+    """How a step stopped by the deadline is made safe. "select" (default): no agent re-plans
+    unless it must; each flies its new plan or the plan it committed to at the last step, shifted,
+    chosen pair by pair (:meth:`~swarmpc.solvers.admm.repair.Repair.select`), and one agent of each
+    pair of committed plans that conflict re-plans. "sequential": the repair pass
+    (:meth:`~swarmpc.solvers.admm.repair.Repair.sequential`), every coupled agent re-planning one
+    after another: plans closer to the consensus optimum, at tens to hundreds of milliseconds
+    beyond the deadline (evidence: docs/lab/admm.md#deadline-selection)."""
+
     def __post_init__(self) -> None:
         problem = _first_problem(self)
         if problem is not None:
@@ -118,7 +127,7 @@ class ADMMConfig:
             dynamic_copies=admm.dynamic_copies, owner_weight=admm.owner_weight, repair=admm.repair,
             repair_rounds=admm.repair_rounds, stall_window=admm.stall_window, stall_rho_factor=admm.stall_rho_factor,
             rho_bounds=(admm.rho_min, admm.rho_max), carry_multipliers=admm.carry_multipliers,
-            warm_start=admm.warm_start,
+            warm_start=admm.warm_start, deadline_repair=admm.deadline_repair,
         )
 
 
@@ -147,6 +156,8 @@ def _first_problem(cfg: ADMMConfig) -> str | None:
         return f"rho_bounds: must be 0 < low <= high, got {cfg.rho_bounds!r}"
     if cfg.carry_multipliers not in ("stable", "always", "never"):
         return f"carry_multipliers: expected stable, always or never, got {cfg.carry_multipliers!r}"
+    if cfg.deadline_repair not in ("sequential", "select"):
+        return f"deadline_repair: expected sequential or select, got {cfg.deadline_repair!r}"
     if cfg.local not in ("qp", "ipopt"):
         return f"local: expected qp or ipopt, got {cfg.local!r}"
     return None

@@ -11,13 +11,15 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.solvers.admm.graph import CouplingGraph
 from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests
 from swarmpc.solvers.admm.safety import SafetyChecks
+from swarmpc.solvers.base import fallback_plan
 
 """Most repair passes in one MPC step (the first, plus re-runs after coupling pairs whose repaired
 plans conflict)."""
@@ -48,6 +50,23 @@ def new_solves(
     return times, sum(fresh and not r.success for r, fresh in zip(results, new, strict=True))
 
 
+def committed_plans(
+    states: np.ndarray, applied: tuple[np.ndarray, np.ndarray] | None, settings: OCPSettings,
+    results: Sequence[LocalResult],
+) -> list[LocalResult]:
+    """Every agent's committed plan at measured ``states``: the plan the last step applied
+    (``applied``: states (M, N+1, n), inputs (M, N, m); None: none yet) shifted by one step
+    (:func:`~swarmpc.solvers.base.fallback_plan`), as a fallback answer in place of ``results``."""
+    committed = []
+    for i, r in enumerate(results):
+        previous = (None, None) if applied is None else (applied[0][i], applied[1][i])
+        x, u = fallback_plan(states[i], previous[0], previous[1], settings)
+        own = settings.model.position(x[settings.first_constrained_step:]).T.copy()
+        committed.append(LocalResult(agent=i, own=own, copies=r.copies, states=x, inputs=u, success=False,
+                                     fallback=True, solve_time=0.0, max_slack=0.0, cost=r.cost))
+    return committed
+
+
 class Repair:
     """The safety passes of one MPC step, asking the agents through ``solve``."""
 
@@ -58,7 +77,7 @@ class Repair:
 
     def make_safe(
         self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult], repair_all: bool,
-        stranded_check: bool,
+        stranded_check: bool, committed: list[LocalResult] | None = None,
     ) -> SafePlans:
         """The safety passes after the iterations.
 
@@ -66,15 +85,30 @@ class Repair:
         again after coupling any candidate pair whose repaired plans conflict, up to
         ``config.repair_rounds`` passes. ``stranded_check``: fallbacks that break the separation from
         another plan re-plan against every plan (rescued if their hard solves fail), then their
-        neighbours against them."""
+        neighbours against them. ``committed`` (with ``repair_all``): the selection pass
+        (:meth:`select`) instead, which asks no agent; pairs of committed plans it leaves in
+        conflict are cleared by :meth:`clear`, and only what that leaves (with candidate pairs its
+        new plans bring into conflict) goes through the repair passes above, for those agents."""
         times, failures = np.zeros(len(results)), 0
         states = self.requests.states
+        agents: list[int] | None = None  # None: the full pass
+        if repair_all and committed is not None:
+            results, clashing = self.select(graph, results, committed)
+            graph = graph.coupled(clashing)
+            previous, results = results, self.clear(graph, z, rho, results, clashing)
+            new, failed = new_solves(results, previous)
+            times, failures = times + new, failures + failed
+            pairs = np.array(clashing, int).reshape(-1, 2)
+            left = pairs[~self.safety.pairs_apart(results, pairs[:, 0], pairs[:, 1])]
+            checked = self.safety.checked_pairs(graph.candidates, states, results)
+            left = [(int(i), int(j)) for i, j in left] + self.safety.missing(results, graph, checked)
+            repair_all, graph, agents = bool(left), graph.coupled(left), _agents_of(left)
         rounds = self.requests.config.repair_rounds
         for round_ in range(rounds if repair_all else 0):
             previous = results
-            results = self.sequential(graph, z, rho, results)
+            results = self.sequential(graph, z, rho, results, agents)
             # later passes count only the agents they re-solved
-            new, failed = new_solves(results, previous, every=round_ == 0)
+            new, failed = new_solves(results, previous, every=round_ == 0 and agents is None)
             times, failures = times + new, failures + failed
             # the repair only re-plans against neighbours: couple any candidate pair whose
             # repaired plans now conflict and repair again
@@ -82,6 +116,7 @@ class Repair:
             if not missing or round_ == rounds - 1:
                 break
             graph = graph.coupled(missing)
+            agents = None if agents is None else _agents_of(missing)
         stranded = self.safety.stranded_fallbacks(results) if stranded_check else []
         if stranded:
             graph = graph.coupled(stranded)
@@ -90,6 +125,83 @@ class Repair:
             new, failed = new_solves(results, previous)
             times, failures = times + new, failures + failed
         return SafePlans(results, graph, times, failures)
+
+    def select(
+        self, graph: CouplingGraph, results: list[LocalResult], committed: list[LocalResult],
+    ) -> tuple[list[LocalResult], list[tuple[int, int]]]:
+        """The selection pass: every agent flies its new plan or its ``committed`` plan, chosen so
+        that every pair that can meet keeps half the OBCA separation, with no solve.
+
+        All agents start on their new plans (an answer that is already a fallback starts on its
+        committed plan). While some checked pair (a candidate, a coupled pair, or a pair of an agent
+        that left its reach bound) is closer than d_min / 2 (:meth:`SafetyChecks.pairs_apart`,
+        the margin of the converged step's check), one agent of each such pair that is on its new
+        plan goes back to its committed plan, the lower index first (the sequential pass gives the
+        higher index precedence). The set of committed agents only grows, so this ends within M
+        rounds. The committed plans are last step's checked plans shifted, so they rarely clash
+        with each other; pairs that do are returned (with the plans chosen so far) for the
+        sequential pass."""
+        chosen = list(results)
+        on_new = np.array([not r.fallback for r in results])
+        checked = self.safety.checked_pairs(graph.candidates, self.requests.states, results)
+        checked = checked | self.safety.checked_pairs(graph.candidates, self.requests.states, committed)
+        for i, n in enumerate(graph.with_plane_partners()):
+            checked[i, list(n)] = True
+        first, second = np.nonzero(np.triu(checked | checked.T, k=1))
+        while True:
+            chosen = [r if new else c for r, c, new in zip(results, committed, on_new, strict=True)]
+            clash = ~self.safety.pairs_apart(chosen, first, second)
+            back: set[int] = set()
+            for i, j in zip(first[clash].tolist(), second[clash].tolist(), strict=True):
+                movable = [k for k in (i, j) if on_new[k]]
+                if movable and back.isdisjoint((i, j)):
+                    back.add(movable[0])
+            if not back:
+                break
+            on_new[sorted(back)] = False
+        self._readmit(chosen, results, on_new, first, second)
+        clash = ~self.safety.pairs_apart(chosen, first, second)
+        return chosen, list(zip(first[clash].tolist(), second[clash].tolist(), strict=True))
+
+    def _readmit(
+        self, chosen: list[LocalResult], results: list[LocalResult], on_new: np.ndarray, first: np.ndarray,
+        second: np.ndarray,
+    ) -> None:
+        """Put agents sent back to their committed plans on their new plans again, highest index
+        first, where the new plan keeps clear of every plan chosen now (an agent sent back for a
+        clash with a plan that was itself sent back later). ``chosen`` and ``on_new`` change in place."""
+        for i in np.flatnonzero(~on_new)[::-1]:
+            if results[i].fallback:
+                continue
+            mine = (first == i) | (second == i)
+            trial = chosen[:i] + [results[i]] + chosen[i + 1:]
+            if self.safety.pairs_apart(trial, first[mine], second[mine]).all():
+                chosen[i], on_new[i] = results[i], True
+
+    def clear(
+        self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult],
+        clashing: list[tuple[int, int]],
+    ) -> list[LocalResult]:
+        """Clear the ``clashing`` pairs (coupled in ``graph``) of the selection pass: one agent of
+        each pair (:func:`_cover`) re-plans against its neighbours' chosen plans, held fixed, which
+        clears the pair if it succeeds. An agent whose re-plan fails keeps its chosen plan and its
+        clash partners not yet asked re-plan in its place: each failed call costs a step tens of
+        milliseconds, and the partner's problem is a different one."""
+        repaired = list(results)
+        pending = deque(_cover(clashing))
+        asked: set[int] = set()
+        while pending:
+            batch = independent_run(pending, graph.neighbours)
+            asked.update(batch)
+            answers = self._replan_all(batch, graph, z, rho, repaired, [False] * len(batch))
+            for i, answer in zip(batch, answers, strict=True):
+                if answer.success:
+                    repaired[i] = answer
+                    continue
+                repaired[i] = replace(results[i], solve_time=answer.solve_time)
+                pending.extend(j for pair in clashing if i in pair for j in pair
+                               if j not in asked and j not in pending)
+        return repaired
 
     def sequential(
         self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult],
@@ -157,6 +269,27 @@ class Repair:
             own_z[i] = s.model.position(plans[i].states[s.first_constrained_step:]).T
             requests.append(self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=last_attempt))
         return self.solve(requests)
+
+
+def _cover(pairs: Sequence[tuple[int, int]]) -> list[int]:
+    """Agents of ``pairs`` such that every pair holds one (greedily, the agent in most pairs first,
+    then the higher index), highest index first: re-planning one agent of a pair against the other's
+    plan, held fixed, clears the pair."""
+    left, cover = list(pairs), []
+    while left:
+        counts: dict[int, int] = {}
+        for pair in left:
+            for k in pair:
+                counts[k] = counts.get(k, 0) + 1
+        pick = max(counts, key=lambda k: (counts[k], k))
+        cover.append(pick)
+        left = [pair for pair in left if pick not in pair]
+    return sorted(cover, reverse=True)
+
+
+def _agents_of(pairs: Sequence[tuple[int, int]]) -> list[int]:
+    """The agents of ``pairs``, highest index first (the repair pass's order)."""
+    return sorted({k for pair in pairs for k in pair}, reverse=True)
 
 
 def independent_run(pending: deque[int], neighbours: Sequence[Sequence[int]]) -> list[int]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,10 +26,13 @@ from swarmpc.solvers.admm.consensus import (
 )
 from swarmpc.solvers.admm.graph import CouplingGraph, guess_neighbours, reachable_guesses
 from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests
-from swarmpc.solvers.admm.repair import Repair, SafePlans
+from swarmpc.solvers.admm.repair import Repair, SafePlans, committed_plans
 from swarmpc.solvers.admm.safety import SafetyChecks, own_positions
 from swarmpc.solvers.base import PlanStep
 from swarmpc.solvers.executors import AgentFactory, Executor, SerialExecutor
+
+RESERVE_WINDOW = 5
+"""Repairing steps whose longest safety passes set the next step's reserve (:meth:`ADMMSolver._reserve`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,9 +97,12 @@ class ADMMSolver:
         """The current step's clock: every local step is asked through it (:meth:`_solve`)."""
         self._local_fallbacks = 0
         """The current step's local solves the QP path failed and IPOPT answered (:meth:`_solve`)."""
-        self._safety_reserve = 0.0
-        """Critical-path seconds the safety passes of the last step that repaired took (see
+        self._safety_times: deque[float] = deque(maxlen=RESERVE_WINDOW)
+        """Critical-path seconds the safety passes of the last steps that repaired took (see
         :meth:`_reserve`)."""
+        self._applied: tuple[np.ndarray, np.ndarray] | None = None
+        """States and inputs of the plans the last step applied (the committed plans of
+        ``config.deadline_repair`` "select")."""
 
     def close(self) -> None:
         """Close the executor the solver made for itself (never one it was given)."""
@@ -140,27 +147,34 @@ class ADMMSolver:
         repair pass (:class:`~swarmpc.solvers.admm.repair.Repair`).
 
         With ``config.deadline``, ADMM is anytime: before each iteration after the first, the
-        step's critical path so far plus the last iteration's share of it plus a reserve for the
+        step's critical path so far plus the largest share of the last few iterations plus a reserve for the
         safety passes (:meth:`_reserve`) is compared with the deadline
         (:class:`StepClock`); when it would overrun, no further iteration starts and the
         step ends as one that ran out of iterations does, through the safety passes (the repair
         pass, re-run on conflicting candidate pairs, then re-plans around stranded fallbacks;
         always run after a deadline stop, even with ``repair`` off).
 
-        What is guaranteed: the deadline only ever removes ADMM iterations; it never shortens or
-        skips a safety pass. A plan applied after a deadline stop has passed exactly the passes of
-        a step that reached ``max_iter`` without consensus: every coupled agent re-planned, one
-        after another, against its neighbours' current plans held fixed (each coupled pair is
-        then feasible under the OBCA constraints whenever its solves succeed); an agent whose
-        solves failed keeps its current plan if it verifiably meets every constraint, else flies
-        a fallback that the agents after it respect and that its close neighbours re-plan around
-        (rescued by the least-violating soft plan as a last resort); and every candidate pair that
-        can meet within the horizon was checked for conflicts and, if it had one, coupled and
-        repaired (up to ``solver.admm.repair_rounds`` passes). The time of
-        these passes counts on the critical path; when the total exceeds the deadline the step is
-        a deadline miss (recorded by the run), never an unchecked plan. Not guaranteed: that the
-        critical path stays within the deadline (the first iteration and the safety passes always
-        run), nor the plan's quality (fewer iterations: further from the consensus optimum).
+        What is guaranteed with ``config.deadline_repair`` "select" (the default): every pair of
+        agents that can meet within the horizon flies plans that keep half the OBCA separation at
+        every constrained step, checked on the plans themselves; each agent flies its last iterate
+        or the plan applied at the last step, shifted (its committed plan), and an agent of a pair
+        of committed plans that conflict re-plans against its neighbours' chosen plans
+        (:meth:`~swarmpc.solvers.admm.repair.Repair.select`,
+        :meth:`~swarmpc.solvers.admm.repair.Repair.clear`); what that leaves goes through the passes
+        below for those agents. With "sequential": the deadline only ever removes ADMM iterations;
+        it never shortens or skips a safety pass. A plan applied after a deadline stop has passed
+        exactly the passes of a step that reached ``max_iter`` without consensus: every coupled
+        agent re-planned, one after another, against its neighbours' current plans held fixed (each
+        coupled pair is then feasible under the OBCA constraints whenever its solves succeed); an
+        agent whose solves failed keeps its current plan if it verifiably meets every constraint,
+        else flies a fallback that the agents after it respect and that its close neighbours re-plan
+        around (rescued by the least-violating soft plan as a last resort); and every candidate pair
+        that can meet within the horizon was checked for conflicts and, if it had one, coupled and
+        repaired (up to ``solver.admm.repair_rounds`` passes). The time of these passes counts on
+        the critical path; when the total exceeds the deadline the step is a deadline miss (recorded
+        by the run), never an unchecked plan. Not guaranteed: that the critical path stays within
+        the deadline (the first iteration and the safety passes always run), nor the plan's quality
+        (fewer iterations: further from the consensus optimum).
         Stopping depends on measured time, so a deadline that binds makes a run depend on the
         machine and its load.
         """
@@ -174,10 +188,14 @@ class ADMMSolver:
         repair = cfg.repair or self._clock.stopped  # a deadline stop is never left unrepaired
         repaired = not run.converged and repair
         before = self._clock.elapsed()[1]
+        committed = None
+        if self._clock.stopped and cfg.deadline_repair == "select":
+            committed = committed_plans(states, self._applied, s, run.results)
         safe = Repair(requests, self.safety, self._solve).make_safe(
-            run.graph, run.z, run.rho, run.results, repaired, repair)
+            run.graph, run.z, run.rho, run.results, repaired, repair, committed)
+        self._applied = (np.array([r.states for r in safe.results]), np.array([r.inputs for r in safe.results]))
         if repaired:
-            self._safety_reserve = self._clock.elapsed()[1] - before
+            self._safety_times.append(self._clock.elapsed()[1] - before)
         # the next step's consensus starts from the plans actually applied: after a repair pass
         # the average z of a non-converged iterate is not what any agent flies
         self.carryover = Carryover(own_positions(safe.results), safe.graph.neighbours,
@@ -186,11 +204,14 @@ class ADMMSolver:
 
     def _reserve(self) -> float:
         """Critical-path seconds a step under a deadline keeps free of ADMM iterations for its
-        safety passes: what the last repairing step's passes took, at most half the deadline. An
+        safety passes: the longest the passes of the last :data:`RESERVE_WINDOW` repairing steps
+        took, at most half the deadline. An
         uncapped reserve feeds itself: a step left one iteration needs a long repair, which leaves
         the next step one iteration (evidence: docs/lab/admm.md#deadline-repair-batches)."""
         deadline = self.config.deadline
-        return 0.0 if deadline is None else min(self._safety_reserve, 0.5 * deadline)
+        if deadline is None or not self._safety_times:
+            return 0.0
+        return min(max(self._safety_times), 0.5 * deadline)
 
     def _iterate(self, requests: StepRequests, graph: CouplingGraph, z: np.ndarray) -> Iterations:
         """ADMM iterations until the stop rule holds on plans that pass the checks, ``max_iter``,

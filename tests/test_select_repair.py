@@ -1,0 +1,112 @@
+"""The selection pass after a deadline stop (``solver.admm.deadline_repair: select``): every agent
+flies its new plan or its committed plan, and every pair that can meet stays apart."""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.scenarios import builtin_scenario
+from swarmpc.solvers.admm import ADMMConfig
+from swarmpc.solvers.admm.graph import CouplingGraph
+from swarmpc.solvers.admm.messages import LocalResult, StepRequests
+from swarmpc.solvers.admm.repair import Repair
+from swarmpc.solvers.admm.safety import SafetyChecks
+
+SCN = builtin_scenario("paper-2d")
+S = OCPSettings.from_scenario(SCN)
+M = 4
+BODIES = np.asarray(SCN.bodies, float)[:M]
+K = S.num_constrained
+
+
+def result(agent: int, points: np.ndarray, fallback: bool = False) -> LocalResult:
+    """An answer whose own positions stay at ``points`` (K, d) (states only for their shape)."""
+    states = np.zeros((S.horizon + 1, 2 * S.dim))
+    return LocalResult(agent=agent, own=np.asarray(points, float).T.copy(), copies=np.zeros((0, S.dim, K)),
+                       states=states, inputs=np.zeros((S.horizon, S.dim)), success=not fallback,
+                       fallback=fallback, solve_time=0.0, max_slack=0.0, cost=0.0)
+
+
+def selection(new_points: np.ndarray, committed_points: np.ndarray, fallback: list[bool]):
+    safety = SafetyChecks(S, BODIES)
+    states = np.zeros((M, 2 * S.dim))
+    states[:, : S.dim] = committed_points[:, 0]
+    requests = StepRequests(S, ADMMConfig(), BODIES, states, states, np.zeros((M, S.horizon + 1, 2 * S.dim)))
+    everyone = ~np.eye(M, dtype=bool)
+    graph = CouplingGraph(everyone, tuple(() for _ in range(M)), tuple(MappingProxyType({}) for _ in range(M)))
+    new = [result(i, new_points[i], fallback[i]) for i in range(M)]
+    committed = [result(i, committed_points[i], True) for i in range(M)]
+    chosen, clashes = Repair(requests, safety, lambda requests: []).select(graph, new, committed)
+    return safety, new, committed, chosen, clashes
+
+
+def apart(safety: SafetyChecks, plans: list[LocalResult], i: int, j: int) -> bool:
+    return bool(safety.pairs_apart(plans, np.array([i]), np.array([j]))[0])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    offsets=st.lists(st.floats(-1.5, 1.5), min_size=M * K * 2, max_size=M * K * 2),
+    fallback=st.lists(st.booleans(), min_size=M, max_size=M),
+)
+def test_selection_keeps_every_pair_apart_and_reverts_only_agents_in_a_clash(offsets, fallback):
+    """Committed plans far apart (corners of a 6 m square), new plans anywhere near the centre:
+    every pair of the chosen plans keeps half the OBCA separation; an agent flies its new plan or
+    its committed one, a fallback answer its committed one, and an agent goes back to its committed
+    plan only if its new plan clashed with another agent's new or committed plan."""
+    corners = np.array([[-3.0, -3.0], [3.0, -3.0], [-3.0, 3.0], [3.0, 3.0]])
+    committed_points = np.repeat(corners[:, None, :], K, axis=1)
+    new_points = np.asarray(offsets).reshape(M, K, 2)
+    safety, new, committed, chosen, clashes = selection(new_points, committed_points, fallback)
+    assert clashes == []
+    for i in range(M):
+        assert chosen[i] is new[i] or chosen[i] is committed[i]
+        if fallback[i]:
+            assert chosen[i] is committed[i]
+        for j in range(i + 1, M):
+            assert apart(safety, chosen, i, j), (i, j)
+        if chosen[i] is committed[i] and not fallback[i]:
+            others = [p for j in range(M) if j != i for p in (new[j], committed[j])]
+            assert any(not apart(safety, [new[i], other], 0, 1) for other in others), i
+
+
+def test_committed_plans_in_conflict_are_handed_on():
+    """Two committed plans that overlap cannot be chosen apart: the pair is returned."""
+    corners = np.array([[-3.0, -3.0], [3.0, -3.0], [0.0, 0.0], [0.0, 0.0]])
+    committed_points = np.repeat(corners[:, None, :], K, axis=1)
+    _, _, _, _, clashes = selection(committed_points + 10.0, committed_points, [False, False, True, True])
+    assert clashes == [(2, 3)]
+
+
+def test_a_failed_clearing_replan_keeps_the_committed_plan_and_asks_the_partner():
+    """Committed plans of agents 2 and 3 overlap. Agent 3 (the higher index) re-plans first; its
+    call fails, so it keeps its committed plan and agent 2 re-plans against that plan, pinned."""
+    corners = np.array([[-3.0, -3.0], [3.0, -3.0], [0.0, 0.0], [0.0, 0.0]])
+    committed_points = np.repeat(corners[:, None, :], K, axis=1)
+    safety, _, committed, chosen, clashes = selection(committed_points + 10.0, committed_points,
+                                                      [False, False, True, True])
+    asked = []
+
+    def solve(requests):
+        answers = []
+        for r in requests:
+            asked.append((r.agent, r.neighbours, r.z_neighbours.copy()))
+            away = np.full((K, 2), 5.0 if r.agent == 2 else 0.0)
+            answers.append(result(r.agent, away, fallback=r.agent == 3))
+        return answers
+
+    graph = CouplingGraph(~np.eye(M, dtype=bool), tuple(() for _ in range(M)),
+                          tuple(MappingProxyType({}) for _ in range(M))).coupled(clashes)
+    states = np.zeros((M, 2 * S.dim))
+    requests = StepRequests(S, ADMMConfig(), BODIES, states, states, np.zeros((M, S.horizon + 1, 2 * S.dim)))
+    z = np.zeros((M, S.dim, K))
+    cleared = Repair(requests, safety, solve).clear(graph, z, 1.0, chosen, clashes)
+    assert [agent for agent, _, _ in asked] == [3, 2]
+    assert asked[1][1] == (3,) and np.allclose(asked[1][2][0], committed[3].own)
+    assert cleared[3].own is committed[3].own and np.allclose(cleared[2].own, 5.0)
+    assert apart(safety, cleared, 2, 3)
