@@ -25,9 +25,13 @@ the linear algebra underneath IPOPT."""
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_trajectories_are_unchanged(case):
+    """The run matches one of the case's stored trajectories: the recorded one, or a variant
+    recorded on a CPU whose kernels round differently (``make_pinned.py --add-variant``), since
+    the closed loop feeds a last-bit difference back until the runs part."""
     name, params = CASES[case]
     result = simulate(builtin_scenario(name, **params))
     with np.load(PINNED) as pinned:
-        states = pinned[f"{case}/states"]
-    assert result.states.shape == states.shape, "the run took a different number of steps"
-    assert np.max(np.abs(result.states - states)) <= TOLERANCE
+        stored = [pinned[key] for key in pinned.files if key.split("~")[0] == f"{case}/states"]
+    assert stored and any(s.shape == result.states.shape for s in stored), "the run took a different number of steps"
+    gaps = [np.max(np.abs(result.states - s)) for s in stored if s.shape == result.states.shape]
+    assert min(gaps) <= TOLERANCE, f"largest state difference {min(gaps):.3g} from the closest stored run"
