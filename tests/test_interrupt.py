@@ -11,6 +11,9 @@ import time
 import numpy as np
 import pytest
 
+from swarmpc.config import scenario_to_yaml
+from swarmpc.scenarios import builtin_scenario
+
 
 def _like_a_terminal() -> None:
     """Ctrl-C's default disposition in the child, as a shell in the foreground gives it: a suite
@@ -26,10 +29,14 @@ def _like_a_terminal() -> None:
 ])
 def test_a_signal_gives_a_complete_interrupted_folder(tmp_path, sig, executor):
     """SIGINT and SIGTERM end the loop after the step; the interrupted run is written whole, no
-    staging folder is left, and worker processes end quietly."""
+    staging folder is left, and worker processes end quietly. The run is paper-2d with a goal
+    tolerance no agent meets, so it is still running whenever the signal comes (a fast machine
+    flies the whole of paper-2d within the start-up wait)."""
     out = tmp_path / "run"
+    endless = tmp_path / "endless.yaml"
+    endless.write_text(scenario_to_yaml(builtin_scenario("paper-2d").with_updates(**{"stop.goal_tolerance": 1e-9})))
     process = subprocess.Popen(
-        [sys.executable, "-m", "swarmpc", "run", "paper-2d", "--executor", executor,
+        [sys.executable, "-m", "swarmpc", "run", str(endless), "--executor", executor,
          "--max-steps", "100000", "--out", str(out), "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_like_a_terminal,
     )
@@ -39,7 +46,7 @@ def test_a_signal_gives_a_complete_interrupted_folder(tmp_path, sig, executor):
     _stdout, stderr = process.communicate(timeout=120)
     assert process.returncode == 0, stderr
     assert "Traceback" not in stderr
-    leftovers = [p.name for p in tmp_path.iterdir() if p.name != "run"]
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name not in ("run", endless.name)]
     assert leftovers == []  # no half-written staging folder
     summary = json.loads((out / "summary.json").read_text())
     assert summary["interrupted"] is True
