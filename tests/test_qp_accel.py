@@ -150,3 +150,16 @@ def test_a_retry_of_the_same_problem_skips_the_restarts_that_failed(dim):
     moved = {**params, "x0": params["x0"] + 0.01}
     assert not stepper.solve(moved, guess, copy).success
     assert stepper.last_record.rounds == 3
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_call_without_restarts_answers_after_its_first_loop(dim):
+    """``restarts=False`` (a quick call whose caller has a cheaper way out): a failed first loop is
+    the answer, and it does not mark the problem's restarts as failed for a later call."""
+    s, params, guess, pinned = repair_problem(dim, standing_at=3.0)
+    stepper = QPLocalLadder(s, backend=RefusingOSQP).stepper(LocalShape(1, pinned=True))
+    copy = pinned["C0"][None]
+    assert not stepper.solve(params, guess, copy, restarts=False).success
+    assert stepper.last_record.rounds == 1
+    assert not stepper.solve(params, guess, copy).success
+    assert stepper.last_record.rounds == 3

@@ -84,8 +84,9 @@ def test_committed_plans_in_conflict_are_handed_on():
 
 
 def test_a_failed_clearing_replan_keeps_the_committed_plan_and_asks_the_partner():
-    """Committed plans of agents 2 and 3 overlap. Agent 3 (the higher index) re-plans first; its
-    call fails, so it keeps its committed plan and agent 2 re-plans against that plan, pinned."""
+    """Committed plans of agents 2 and 3 overlap. Agent 3 (the higher index) re-plans first, a
+    quick call; it fails, so agent 3 keeps its committed plan and agent 2 re-plans against that
+    plan, pinned."""
     corners = np.array([[-3.0, -3.0], [3.0, -3.0], [0.0, 0.0], [0.0, 0.0]])
     committed_points = np.repeat(corners[:, None, :], K, axis=1)
     safety, _, committed, chosen, clashes = selection(committed_points + 10.0, committed_points,
@@ -96,6 +97,7 @@ def test_a_failed_clearing_replan_keeps_the_committed_plan_and_asks_the_partner(
         answers = []
         for r in requests:
             asked.append((r.agent, r.neighbours, r.z_neighbours.copy()))
+            assert r.quick and r.repair  # a clearing call has a cheaper way out than restarts
             away = np.full((K, 2), 5.0 if r.agent == 2 else 0.0)
             answers.append(result(r.agent, away, fallback=r.agent == 3))
         return answers

@@ -843,11 +843,12 @@ class SequentialLocalQP:
 
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, pinned: np.ndarray | None = None,
-        slack_caps: dict[int, float] | None = None, y: np.ndarray | None = None,
+        slack_caps: dict[int, float] | None = None, y: np.ndarray | None = None, restarts: bool = True,
     ) -> NLPSolution:
         """The local step from ``guess`` (blocks or a vector of this layout); ``pinned`` (n, d, K):
         the copies' fixed positions; ``slack_caps``: pair slot -> upper bound of its slack;
-        ``y``: the QP duals of a previous solve of this shape (warm start).
+        ``y``: the QP duals of a previous solve of this shape (warm start); ``restarts`` False: a
+        failed first loop is the answer (a caller that has a cheaper way out than two more loops).
 
         If the first QP is infeasible (the guess's certificates ask for a separation the
         dynamics cannot reach, e.g. a guess that cuts through a pinned neighbour's plan), the
@@ -863,7 +864,7 @@ class SequentialLocalQP:
         answer, x, lin, converged = self._loop(params, x, lin, y, pinned, slack_caps, delta, tally)
         proven = (not answer.solved and self.proof is not None and pinned is not None
                   and self.proof.infeasible(params["x0"], pinned, delta))
-        restart = not answer.solved and tally[0] == 1 and not proven  # no certificates help a proven call
+        restart = restarts and not answer.solved and tally[0] == 1 and not proven  # none help a proven call
         key = self._problem_key(params, pinned, slack_caps) if restart else None
         for plan in self._fallback_plans(params) if restart and key != self._failed_restarts else []:
             start = x.copy()
@@ -1060,8 +1061,10 @@ class QPLocalLadder:
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
         *, copies: int, planes: int = 0, duals: tuple[np.ndarray, np.ndarray] | None = None,
+        restarts: bool = True,
     ) -> NLPSolution:
-        """One local step; see the class docstring for ``fixed`` and ``duals``."""
+        """One local step; see the class docstring for ``fixed`` and ``duals``, and
+        :meth:`SequentialLocalQP.solve` for ``restarts``."""
         fixed = fixed or {}
         unknown = [key for key in fixed if key[:1] not in ("C", "A") or not key[1:].isdigit()]
         if unknown:
@@ -1078,7 +1081,7 @@ class QPLocalLadder:
             if isinstance(guess, np.ndarray) and guess.size != stepper.vector_size:
                 guess = self._layout_of(shape, guess).blocks_of(guess, params)
             y = duals[1] if duals is not None and duals[1].size == stepper.problem.A.shape[0] else None
-            return stepper.solve(params, guess, pinned, caps, y)
+            return stepper.solve(params, guess, pinned, caps, y, restarts=restarts)
 
     def _layout_of(self, shape: LocalShape, vector: np.ndarray) -> SequentialLocalQP:
         """The built step whose solution vectors ``vector`` is laid out for: ``shape``'s, or that

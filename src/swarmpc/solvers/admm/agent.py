@@ -228,6 +228,8 @@ class LocalAgent:
         """Calls of the current request that IPOPT answered for the QP path."""
         self._handover = True
         """The current request's :attr:`LocalRequest.handover`."""
+        self._quick = False
+        """The current request's :attr:`LocalRequest.quick`."""
         self._solution: NLPSolution | None = None
         """The last successful solve: the primal (and dual) start of the next one of the same shape."""
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
@@ -240,6 +242,7 @@ class LocalAgent:
         self.cache.state = request.state
         self._fallbacks = 0
         self._handover = request.handover
+        self._quick = request.quick
         if not request.neighbours:
             self.multipliers.clear()
         elif not request.repair:
@@ -286,6 +289,8 @@ class LocalAgent:
         the calls IPOPT answered for a failed QP path."""
         if isinstance(ladder, QPLocalSolverLadder) and not self._handover:
             sizes = {**sizes, "handover": False}
+        if isinstance(ladder, QPLocalSolverLadder) and self._quick:
+            sizes = {**sizes, "restarts": False}
         solution = ladder.solve(params, guess, fixed, **sizes)
         self._fallbacks += isinstance(solution, FallbackSolution)
         return solution
@@ -338,7 +343,7 @@ class LocalAgent:
         else:
             duals = self._warm_duals(request, same_shape) if pinned is None else None
             solution = self._ladder_solve(self.nlp, params, point, pinned, **sizes, duals=duals)
-        if pinned is not None and not solution.success and self._plan is not None:
+        if pinned is not None and not solution.success and self._plan is not None and not request.quick:
             solution = self._repair_from_own_plan(request, params, pinned, solution)
         return solution
 

@@ -147,11 +147,12 @@ class QPLocalSolverLadder:
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
         *, copies: int, planes: int = 0, duals: tuple[np.ndarray, np.ndarray] | None = None,
-        handover: bool = True,
+        handover: bool = True, restarts: bool = True,
     ) -> NLPSolution:
         """The QP path's answer if it succeeds or proves the problem infeasible, else IPOPT's
-        (:class:`FallbackSolution`); with ``handover`` False the QP path's answer, failed or not."""
-        answer = self.qp.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals)
+        (:class:`FallbackSolution`); with ``handover`` False the QP path's answer, failed or not.
+        ``restarts``: see :meth:`swarmpc.solvers.qp_local.SequentialLocalQP.solve`."""
+        answer = self.qp.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals, restarts=restarts)
         if answer.success or answer.status == PROVEN_INFEASIBLE or not handover:
             return answer
         pinned = pins_copies(fixed)

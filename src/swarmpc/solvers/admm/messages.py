@@ -58,6 +58,10 @@ class LocalRequest:
     see :func:`~swarmpc.solvers.admm.graph.separating_planes`."""
     plane_offsets: np.ndarray | None = None
     """(P, K) offsets of those planes: normal' p_k >= offset_k at each constrained step k."""
+    quick: bool = False
+    """A call whose failure the caller has a cheaper answer to (the selection pass's clearing
+    re-plan, whose agent keeps its committed plan and whose partner is asked instead): on the QP
+    path one certificate loop without restarts, and no retry from the agent's own plan."""
     handover: bool = True
     """Whether a call the QP local step fails may be handed to IPOPT (``ADMMConfig.local`` "qp").
     False under a deadline: an IPOPT call takes tens to hundreds of ms, more than a step's budget,
@@ -136,6 +140,7 @@ class StepRequests:
     def request(
         self, i: int, graph: CouplingGraph, z: np.ndarray, rho: float, rho_previous: float, new_step: bool,
         plans: tuple[np.ndarray, np.ndarray] | None = None, carry: tuple[bool, ...] = (), rescue: bool = False,
+        quick: bool = False,
     ) -> LocalRequest:
         """Agent ``i``'s request: its neighbours and planes in ``graph``, the consensus ``z``
         (M, d, K); with ``plans`` (states, inputs of each neighbour) a repair's request, whose
@@ -166,6 +171,7 @@ class StepRequests:
             relaxation=self.config.relaxation,
             carry=carry,
             rescue=rescue,
+            quick=quick,
             plane_normals=normals,
             plane_offsets=offsets,
             handover=self.config.deadline is None,

@@ -193,7 +193,7 @@ class Repair:
         while pending:
             batch = independent_run(pending, graph.neighbours)
             asked.update(batch)
-            answers = self._replan_all(batch, graph, z, rho, repaired, [False] * len(batch))
+            answers = self._replan_all(batch, graph, z, rho, repaired, [False] * len(batch), quick=True)
             for i, answer in zip(batch, answers, strict=True):
                 if answer.success:
                     repaired[i] = answer
@@ -254,7 +254,7 @@ class Repair:
 
     def _replan_all(
         self, agents: list[int], graph: CouplingGraph, z: np.ndarray, rho: float, plans: list[LocalResult],
-        rescue: list[bool],
+        rescue: list[bool], quick: bool = False,
     ) -> list[LocalResult]:
         """The answers of ``agents`` (no two of them coupled) against their neighbours' current
         ``plans``, held fixed, asked in one batch: none of them sees another's plan, so the answers
@@ -267,7 +267,8 @@ class Repair:
             pinned = (np.array([plans[j].states for j in others]), np.array([plans[j].inputs for j in others]))
             own_z = z.copy()
             own_z[i] = s.model.position(plans[i].states[s.first_constrained_step:]).T
-            requests.append(self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=last_attempt))
+            requests.append(self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=last_attempt,
+                                                  quick=quick))
         return self.solve(requests)
 
 
