@@ -520,11 +520,12 @@ class ADMMOptions(_Frozen):
         "in conflict (a deadline stop is repaired anyway).",
     )
     deadline_repair: Literal["sequential", "select"] = Field(
-        default="select",
-        description="How a step stopped by `solver.deadline` is made safe: `select` each agent flies its new plan "
-        "or its last step's plan shifted, chosen so every pair that can meet stays clear, and one agent of each "
-        "pair of those that conflict re-plans; `sequential` every coupled agent re-plans, one after another, "
-        "against its neighbours' plans (closer to the consensus optimum, overruns the deadline more often).",
+        default="sequential",
+        description="How a step stopped by `solver.deadline` is made safe: `sequential` every coupled agent "
+        "re-plans, one after another, against its neighbours' plans; `select` each agent flies its new plan or its "
+        "last step's plan shifted, chosen so every pair that can meet stays clear, and one agent of each pair of "
+        "those that conflict re-plans (fewer overruns, a higher cost; it can leave a crowded swarm short of its "
+        "goals).",
     )
     repair_rounds: int = Field(
         default=3, ge=1, le=100,

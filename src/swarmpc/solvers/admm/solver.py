@@ -154,14 +154,14 @@ class ADMMSolver:
         pass, re-run on conflicting candidate pairs, then re-plans around stranded fallbacks;
         always run after a deadline stop, even with ``repair`` off).
 
-        What is guaranteed with ``config.deadline_repair`` "select" (the default): every pair of
+        What is guaranteed with ``config.deadline_repair`` "select": every pair of
         agents that can meet within the horizon flies plans that keep half the OBCA separation at
         every constrained step, checked on the plans themselves; each agent flies its last iterate
         or the plan applied at the last step, shifted (its committed plan), and an agent of a pair
         of committed plans that conflict re-plans against its neighbours' chosen plans
         (:meth:`~swarmpc.solvers.admm.repair.Repair.select`,
         :meth:`~swarmpc.solvers.admm.repair.Repair.clear`); what that leaves goes through the passes
-        below for those agents. With "sequential": the deadline only ever removes ADMM iterations;
+        below for those agents. With "sequential" (the default): the deadline only ever removes ADMM iterations;
         it never shortens or skips a safety pass. A plan applied after a deadline stop has passed
         exactly the passes of a step that reached ``max_iter`` without consensus: every coupled
         agent re-planned, one after another, against its neighbours' current plans held fixed (each
