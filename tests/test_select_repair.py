@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import MappingProxyType
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -32,7 +33,8 @@ def result(agent: int, points: np.ndarray, fallback: bool = False) -> LocalResul
                        fallback=fallback, solve_time=0.0, max_slack=0.0, cost=0.0)
 
 
-def selection(new_points: np.ndarray, committed_points: np.ndarray, fallback: list[bool]):
+def selection(new_points: np.ndarray, committed_points: np.ndarray, fallback: list[bool],
+              waiting: np.ndarray | None = None):
     safety = SafetyChecks(S, BODIES)
     states = np.zeros((M, 2 * S.dim))
     states[:, : S.dim] = committed_points[:, 0]
@@ -41,7 +43,7 @@ def selection(new_points: np.ndarray, committed_points: np.ndarray, fallback: li
     graph = CouplingGraph(everyone, tuple(() for _ in range(M)), tuple(MappingProxyType({}) for _ in range(M)))
     new = [result(i, new_points[i], fallback[i]) for i in range(M)]
     committed = [result(i, committed_points[i], True) for i in range(M)]
-    chosen, clashes = Repair(requests, safety, lambda requests: []).select(graph, new, committed)
+    chosen, clashes = Repair(requests, safety, lambda requests: []).select(graph, new, committed, waiting)
     return safety, new, committed, chosen, clashes
 
 
@@ -112,3 +114,44 @@ def test_a_failed_clearing_replan_keeps_the_committed_plan_and_asks_the_partner(
     assert asked[1][1] == (3,) and np.allclose(asked[1][2][0], committed[3].own)
     assert cleared[3].own is committed[3].own and np.allclose(cleared[2].own, 5.0)
     assert apart(safety, cleared, 2, 3)
+
+
+def test_the_agent_that_waited_longer_keeps_its_iterate():
+    """Iterates of agents 0 and 1 overlap, committed plans far apart: with no waiting the lower
+    index goes back; after agent 0 has flown its committed plan for three steps, agent 1 does."""
+    corners = np.array([[-3.0, -3.0], [3.0, -3.0], [-3.0, 3.0], [3.0, 3.0]])
+    committed_points = np.repeat(corners[:, None, :], K, axis=1)
+    new_points = committed_points.copy()
+    new_points[0] = new_points[1] = 0.0
+    _, new, committed, chosen, _ = selection(new_points, committed_points, [False] * M)
+    assert chosen[0] is committed[0] and chosen[1] is new[1]
+    _, new, committed, chosen, _ = selection(new_points, committed_points, [False] * M, np.array([3, 0, 0, 0]))
+    assert chosen[0] is new[0] and chosen[1] is committed[1]
+
+
+@pytest.mark.parametrize("lands_at, accepted", [(5.0, True), (3.0, False)])
+def test_a_refreshed_plan_replaces_the_committed_one_only_where_it_keeps_every_pair_apart(lands_at, accepted):
+    """Agent 0's iterate ran into agent 1's plan, so agent 0 re-plans coupled with agent 1 (a quick
+    call against the chosen plans); its answer is flown only if it keeps clear of every other
+    chosen plan: at (5, 5) it is, at agent 3's corner (3, 3) it is not."""
+    corners = np.array([[-3.0, -3.0], [3.0, -3.0], [-3.0, 3.0], [3.0, 3.0]])
+    committed_points = np.repeat(corners[:, None, :], K, axis=1)
+    iterate_points = committed_points.copy()
+    iterate_points[0] = corners[1]
+    safety, iterates, committed, chosen, _ = selection(iterate_points, committed_points, [False] * M)
+    assert chosen[0] is committed[0]
+
+    def solve(requests):
+        assert all(r.quick and r.repair and r.neighbours == (1,) for r in requests)
+        return [result(r.agent, np.full((K, 2), lands_at)) for r in requests]
+
+    graph = CouplingGraph(~np.eye(M, dtype=bool), tuple(() for _ in range(M)),
+                          tuple(MappingProxyType({}) for _ in range(M)))
+    states = np.zeros((M, 2 * S.dim))
+    requests = StepRequests(S, ADMMConfig(), BODIES, states, states, np.zeros((M, S.horizon + 1, 2 * S.dim)))
+    repair = Repair(requests, safety, solve)
+    pairs = repair.pairs_to_check(graph, chosen, committed)
+    refreshed, coupled = repair.refresh(graph, np.zeros((M, S.dim, K)), 1.0, chosen, iterates, [0], pairs)
+    assert coupled.neighbours[0] == (1,) and coupled.neighbours[1] == (0,)
+    assert (refreshed[0] is not committed[0]) is accepted
+    assert all(refreshed[i] is chosen[i] for i in range(1, M))

@@ -24,6 +24,10 @@ from swarmpc.solvers.base import fallback_plan
 """Most repair passes in one MPC step (the first, plus re-runs after coupling pairs whose repaired
 plans conflict)."""
 
+STALE_STEPS = 2
+"""Steps an agent has flown its committed plan after which the selection pass has it re-plan
+rather than fly that plan again (:meth:`Repair.refresh`)."""
+
 Solve = Callable[[list[LocalRequest]], list[LocalResult]]
 """The agents' answers to a batch of requests (timed on the step's critical path)."""
 
@@ -77,7 +81,7 @@ class Repair:
 
     def make_safe(
         self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult], repair_all: bool,
-        stranded_check: bool, committed: list[LocalResult] | None = None,
+        stranded_check: bool, committed: list[LocalResult] | None = None, waiting: np.ndarray | None = None,
     ) -> SafePlans:
         """The safety passes after the iterations.
 
@@ -88,20 +92,17 @@ class Repair:
         neighbours against them. ``committed`` (with ``repair_all``): the selection pass
         (:meth:`select`) instead, which asks no agent; pairs of committed plans it leaves in
         conflict are cleared by :meth:`clear`, and only what that leaves (with candidate pairs its
-        new plans bring into conflict) goes through the repair passes above, for those agents."""
+        new plans bring into conflict) goes through the repair passes above, for those agents.
+        Agents that fly their committed plans after :data:`STALE_STEPS` steps of it (``waiting``,
+        (M,)) re-plan first (:meth:`refresh`)."""
         times, failures = np.zeros(len(results)), 0
         states = self.requests.states
         agents: list[int] | None = None  # None: the full pass
         if repair_all and committed is not None:
-            results, clashing = self.select(graph, results, committed)
-            graph = graph.coupled(clashing)
-            previous, results = results, self.clear(graph, z, rho, results, clashing)
+            previous = results
+            results, graph, left = self._select(graph, z, rho, results, committed, waiting)
             new, failed = new_solves(results, previous)
             times, failures = times + new, failures + failed
-            pairs = np.array(clashing, int).reshape(-1, 2)
-            left = pairs[~self.safety.pairs_apart(results, pairs[:, 0], pairs[:, 1])]
-            checked = self.safety.checked_pairs(graph.candidates, states, results)
-            left = [(int(i), int(j)) for i, j in left] + self.safety.missing(results, graph, checked)
             repair_all, graph, agents = bool(left), graph.coupled(left), _agents_of(left)
         rounds = self.requests.config.repair_rounds
         for round_ in range(rounds if repair_all else 0):
@@ -126,57 +127,123 @@ class Repair:
             times, failures = times + new, failures + failed
         return SafePlans(results, graph, times, failures)
 
+    def _select(
+        self, graph: CouplingGraph, z: np.ndarray, rho: float, iterates: list[LocalResult],
+        committed: list[LocalResult], waiting: np.ndarray | None,
+    ) -> tuple[list[LocalResult], CouplingGraph, list[tuple[int, int]]]:
+        """The selection pass (:meth:`select`), then :meth:`clear` and :meth:`refresh`: the plans,
+        the graph with the pairs they coupled, and the checked pairs whose plans still do not keep
+        d_min / 2 (for the repair pass)."""
+        chosen, clashing = self.select(graph, iterates, committed, waiting)
+        graph = graph.coupled(clashing)
+        results = self.clear(graph, z, rho, chosen, clashing)
+        stale = [] if waiting is None else [i for i, r in enumerate(results)
+                                            if r is committed[i] and waiting[i] >= STALE_STEPS]
+        first, second = self.pairs_to_check(graph, results, committed)
+        if stale:
+            results, graph = self.refresh(graph, z, rho, results, iterates, stale, (first, second))
+            first, second = self.pairs_to_check(graph, results, committed)  # a new plan may leave its reach
+        apart = self.safety.pairs_apart(results, first, second)
+        return results, graph, list(zip(first[~apart].tolist(), second[~apart].tolist(), strict=True))
+
     def select(
         self, graph: CouplingGraph, results: list[LocalResult], committed: list[LocalResult],
+        waiting: np.ndarray | None = None,
     ) -> tuple[list[LocalResult], list[tuple[int, int]]]:
         """The selection pass: every agent flies its new plan or its ``committed`` plan, chosen so
         that every pair that can meet keeps half the OBCA separation, with no solve.
 
         All agents start on their new plans (an answer that is already a fallback starts on its
-        committed plan). While some checked pair (a candidate, a coupled pair, or a pair of an agent
-        that left its reach bound) is closer than d_min / 2 (:meth:`SafetyChecks.pairs_apart`,
-        the margin of the converged step's check), one agent of each such pair that is on its new
-        plan goes back to its committed plan, the lower index first (the sequential pass gives the
-        higher index precedence). The set of committed agents only grows, so this ends within M
-        rounds. The committed plans are last step's checked plans shifted, so they rarely clash
-        with each other; pairs that do are returned (with the plans chosen so far) for the
-        sequential pass."""
-        chosen = list(results)
+        committed plan). While some checked pair (:meth:`pairs_to_check`) is closer than d_min / 2
+        (:meth:`SafetyChecks.pairs_apart`, the margin of the converged step's check), one agent of
+        each such pair that is on its new plan goes back to its committed plan: the one that has
+        flown its committed plan for fewer steps before this one (``waiting``, (M,); None: none),
+        then the lower index (the sequential pass gives the higher index precedence), so that no
+        agent waits for good behind the same neighbour. The set of committed agents only grows, so
+        this ends within M rounds; agents sent back are then readmitted where they can be
+        (:meth:`_readmit`). The committed plans are last step's checked plans shifted, so they
+        rarely clash with each other; pairs that do are returned (with the plans chosen so far)."""
+        rank = _ranks(len(results), waiting)
         on_new = np.array([not r.fallback for r in results])
-        checked = self.safety.checked_pairs(graph.candidates, self.requests.states, results)
-        checked = checked | self.safety.checked_pairs(graph.candidates, self.requests.states, committed)
-        for i, n in enumerate(graph.with_plane_partners()):
-            checked[i, list(n)] = True
-        first, second = np.nonzero(np.triu(checked | checked.T, k=1))
+        first, second = self.pairs_to_check(graph, results, committed)
         while True:
             chosen = [r if new else c for r, c, new in zip(results, committed, on_new, strict=True)]
             clash = ~self.safety.pairs_apart(chosen, first, second)
             back: set[int] = set()
             for i, j in zip(first[clash].tolist(), second[clash].tolist(), strict=True):
-                movable = [k for k in (i, j) if on_new[k]]
+                movable = sorted((k for k in (i, j) if on_new[k]), key=lambda k: rank[k])
                 if movable and back.isdisjoint((i, j)):
                     back.add(movable[0])
             if not back:
                 break
             on_new[sorted(back)] = False
-        self._readmit(chosen, results, on_new, first, second)
+        self._readmit(chosen, results, on_new, first, second, rank)
         clash = ~self.safety.pairs_apart(chosen, first, second)
         return chosen, list(zip(first[clash].tolist(), second[clash].tolist(), strict=True))
 
+    def pairs_to_check(
+        self, graph: CouplingGraph, results: list[LocalResult], committed: list[LocalResult],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(first, second) agents of every pair (i < j) that can meet: a reach candidate, a coupled
+        or plane pair, or a pair of an agent whose new or committed plan left its reach bound."""
+        states = self.requests.states
+        checked = self.safety.checked_pairs(graph.candidates, states, results)
+        checked = checked | self.safety.checked_pairs(graph.candidates, states, committed)
+        for i, n in enumerate(graph.with_plane_partners()):
+            checked[i, list(n)] = True
+        first, second = np.nonzero(np.triu(checked | checked.T, k=1))
+        return first, second
+
     def _readmit(
         self, chosen: list[LocalResult], results: list[LocalResult], on_new: np.ndarray, first: np.ndarray,
-        second: np.ndarray,
+        second: np.ndarray, rank: np.ndarray,
     ) -> None:
-        """Put agents sent back to their committed plans on their new plans again, highest index
+        """Put agents sent back to their committed plans on their new plans again, highest rank
         first, where the new plan keeps clear of every plan chosen now (an agent sent back for a
         clash with a plan that was itself sent back later). ``chosen`` and ``on_new`` change in place."""
-        for i in np.flatnonzero(~on_new)[::-1]:
+        for i in sorted(np.flatnonzero(~on_new), key=lambda k: -rank[k]):
             if results[i].fallback:
                 continue
-            mine = (first == i) | (second == i)
-            trial = chosen[:i] + [results[i]] + chosen[i + 1:]
-            if self.safety.pairs_apart(trial, first[mine], second[mine]).all():
+            if self._clear_of(chosen, results[i], first, second):
                 chosen[i], on_new[i] = results[i], True
+
+    def _clear_of(self, chosen: list[LocalResult], plan: LocalResult, first: np.ndarray, second: np.ndarray) -> bool:
+        """Whether agent ``plan.agent`` flying ``plan`` keeps every checked pair it is in apart
+        from the other ``chosen`` plans."""
+        i = plan.agent
+        mine = (first == i) | (second == i)
+        trial = chosen[:i] + [plan] + chosen[i + 1:]
+        return bool(self.safety.pairs_apart(trial, first[mine], second[mine]).all())
+
+    def refresh(
+        self, graph: CouplingGraph, z: np.ndarray, rho: float, chosen: list[LocalResult],
+        iterates: list[LocalResult], agents: list[int], pairs: tuple[np.ndarray, np.ndarray],
+    ) -> tuple[list[LocalResult], CouplingGraph]:
+        """Agents ``agents``, on their committed plans, re-plan against their neighbours' chosen
+        plans, held fixed (quick calls, uncoupled agents in one batch), each first coupled with
+        every agent whose chosen plan its iterate (``iterates``) conflicts with; a new plan replaces
+        the committed one where it keeps every checked pair (``pairs``) apart. An agent sent back
+        step after step flies a plan that brakes to rest, and its iterates, made for an unfinished
+        consensus, keep conflicting with its neighbours' plans: a re-plan against the plans they
+        fly gets it moving (evidence: docs/lab/admm.md#deadline-selection). Returns the plans and
+        the graph with those couplings."""
+        first, second = pairs
+        blocking = []
+        for i in agents:
+            mine = np.flatnonzero((first == i) | (second == i))
+            trial = chosen[:i] + [iterates[i]] + chosen[i + 1:]
+            hit = mine[~self.safety.pairs_apart(trial, first[mine], second[mine])]
+            blocking += [(int(first[k]), int(second[k])) for k in hit]
+        graph = graph.coupled(blocking)
+        repaired = list(chosen)
+        pending = deque(i for i in sorted(agents, reverse=True) if graph.neighbours[i])
+        while pending:
+            batch = independent_run(pending, graph.neighbours)
+            answers = self._replan_all(batch, graph, z, rho, repaired, [False] * len(batch), quick=True)
+            for answer in answers:
+                if answer.success and self._clear_of(repaired, answer, first, second):
+                    repaired[answer.agent] = answer
+        return repaired, graph
 
     def clear(
         self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult],
@@ -270,6 +337,15 @@ class Repair:
             requests.append(self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=last_attempt,
                                                   quick=quick))
         return self.solve(requests)
+
+
+def _ranks(count: int, waiting: np.ndarray | None) -> np.ndarray:
+    """(count,) each agent's rank in the selection pass: by steps waited (``waiting``), then index."""
+    waited = np.zeros(count, int) if waiting is None else np.asarray(waiting, int)
+    order = np.lexsort((np.arange(count), waited))
+    rank = np.empty(count, int)
+    rank[order] = np.arange(count)
+    return rank
 
 
 def _cover(pairs: Sequence[tuple[int, int]]) -> list[int]:

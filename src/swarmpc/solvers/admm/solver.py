@@ -100,6 +100,9 @@ class ADMMSolver:
         self._safety_times: deque[float] = deque(maxlen=RESERVE_WINDOW)
         """Critical-path seconds the safety passes of the last steps that repaired took (see
         :meth:`_reserve`)."""
+        self._waiting = np.zeros(num_agents, int)
+        """Per agent, the steps in a row it has flown a fallback or committed plan (the selection
+        pass's priority)."""
         self._applied: tuple[np.ndarray, np.ndarray] | None = None
         """States and inputs of the plans the last step applied (the committed plans of
         ``config.deadline_repair`` "select")."""
@@ -192,7 +195,8 @@ class ADMMSolver:
         if self._clock.stopped and cfg.deadline_repair == "select":
             committed = committed_plans(states, self._applied, s, run.results)
         safe = Repair(requests, self.safety, self._solve).make_safe(
-            run.graph, run.z, run.rho, run.results, repaired, repair, committed)
+            run.graph, run.z, run.rho, run.results, repaired, repair, committed, self._waiting)
+        self._waiting = np.where([r.fallback for r in safe.results], self._waiting + 1, 0)
         self._applied = (np.array([r.states for r in safe.results]), np.array([r.inputs for r in safe.results]))
         if repaired:
             self._safety_times.append(self._clock.elapsed()[1] - before)
