@@ -9,7 +9,7 @@ again, and a fallback that breaks the separation from another plan is planned ar
 
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
@@ -207,13 +207,20 @@ class Repair:
             if self._clear_of(chosen, results[i], first, second):
                 chosen[i], on_new[i] = results[i], True
 
+    def _clashes_of(
+        self, chosen: list[LocalResult], plan: LocalResult, first: np.ndarray, second: np.ndarray,
+    ) -> np.ndarray:
+        """Indices into (``first``, ``second``) of the checked pairs that agent ``plan.agent``,
+        flying ``plan``, does not keep apart from the other ``chosen`` plans."""
+        i = plan.agent
+        mine = np.flatnonzero((first == i) | (second == i))
+        trial = chosen[:i] + [plan] + chosen[i + 1:]
+        return mine[~self.safety.pairs_apart(trial, first[mine], second[mine])]
+
     def _clear_of(self, chosen: list[LocalResult], plan: LocalResult, first: np.ndarray, second: np.ndarray) -> bool:
         """Whether agent ``plan.agent`` flying ``plan`` keeps every checked pair it is in apart
         from the other ``chosen`` plans."""
-        i = plan.agent
-        mine = (first == i) | (second == i)
-        trial = chosen[:i] + [plan] + chosen[i + 1:]
-        return bool(self.safety.pairs_apart(trial, first[mine], second[mine]).all())
+        return self._clashes_of(chosen, plan, first, second).size == 0
 
     def refresh(
         self, graph: CouplingGraph, z: np.ndarray, rho: float, chosen: list[LocalResult],
@@ -228,13 +235,8 @@ class Repair:
         fly gets it moving (evidence: docs/lab/admm.md#deadline-selection). Returns the plans and
         the graph with those couplings."""
         first, second = pairs
-        blocking = []
-        for i in agents:
-            mine = np.flatnonzero((first == i) | (second == i))
-            trial = chosen[:i] + [iterates[i]] + chosen[i + 1:]
-            hit = mine[~self.safety.pairs_apart(trial, first[mine], second[mine])]
-            blocking += [(int(first[k]), int(second[k])) for k in hit]
-        graph = graph.coupled(blocking)
+        hits = [k for i in agents for k in self._clashes_of(chosen, iterates[i], first, second)]
+        graph = graph.coupled((int(first[k]), int(second[k])) for k in hits)
         repaired = list(chosen)
         pending = deque(i for i in sorted(agents, reverse=True) if graph.neighbours[i])
         while pending:
@@ -354,10 +356,7 @@ def _cover(pairs: Sequence[tuple[int, int]]) -> list[int]:
     plan, held fixed, clears the pair."""
     left, cover = list(pairs), []
     while left:
-        counts: dict[int, int] = {}
-        for pair in left:
-            for k in pair:
-                counts[k] = counts.get(k, 0) + 1
+        counts = Counter(k for pair in left for k in pair)
         pick = max(counts, key=lambda k: (counts[k], k))
         cover.append(pick)
         left = [pair for pair in left if pick not in pair]
