@@ -1,13 +1,15 @@
 """Car study: the built-ins with cars flown by the centralised NLP and by consensus ADMM, side by side.
 
-Each case (``intersection``, ``mixed``, ``parking``) runs as built in (centralised) and with
-``solver.method: admm`` (IPOPT local steps, serial), everything else equal. Collisions and the
+Each case (``intersection``, ``mixed``, ``parking``) runs as built in (centralised), with
+``solver.method: admm`` (IPOPT local steps, serial) and with ``admm-qp`` (ADMM with the QP local
+step, ``solver.local: qp``), everything else equal. Collisions and the
 smallest distance between footprints are recomputed from the saved poses by the exact rectangle
 distance; the closed-loop cost of the ADMM run is compared with the centralised run's. Rows of a
 run replace the rows of the same case and method already in the file. Writes
 ``benchmarks/results/car_runs.json``.
 
     nice -n 10 .venv/bin/python benchmarks/car_study.py --jobs 2       # the rows
+    .venv/bin/python benchmarks/car_study.py --methods admm admm-qp    # the two local steps, case by case
     .venv/bin/python benchmarks/car_study.py --record NOTE             # the experiment in cars.json
     .venv/bin/python benchmarks/lab_tables.py --write                  # docs/lab/cars.md
 """
@@ -28,7 +30,10 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "car_runs.json"
 RECORD = ROOT / "benchmarks" / "results" / "cars.json"
 CASES = ("intersection", "mixed", "parking")
-METHODS = ("centralized", "admm")
+METHODS = ("centralized", "admm", "admm-qp")
+SETTINGS = {"centralized": {"solver.method": "centralized"}, "admm": {"solver.method": "admm", "solver.local": "ipopt"},
+            "admm-qp": {"solver.method": "admm", "solver.local": "qp"}}
+"""The scenario keys of each method of the study."""
 
 
 def footprint_gap(poses: np.ndarray, sizes: np.ndarray) -> float:
@@ -47,7 +52,7 @@ def measure(task: tuple[str, str]) -> dict[str, Any]:
     from swarmpc.simulation.results import agent_footprints, agent_poses
 
     case, method = task
-    scn = builtin_scenario(case).with_updates(**{"solver.method": method})
+    scn = builtin_scenario(case).with_updates(**SETTINGS[method])
     start = time.perf_counter()
     result = simulate(scn)
     wall = time.perf_counter() - start
@@ -60,6 +65,8 @@ def measure(task: tuple[str, str]) -> dict[str, Any]:
         "step_ms_median": s["step_time_ms"]["median"], "step_ms_p95": s["step_time_ms"]["p95"],
         "critical_ms_median": (s.get("critical_path_ms") or {}).get("median"),
         "admm_iterations_mean": iterations.get("mean"), "failures": s.get("solver_failures"), "wall_s": wall,
+        "agent_ms_median": (s.get("agent_step_time_ms") or {}).get("median"),
+        "agent_ms_p95": (s.get("agent_step_time_ms") or {}).get("p95"), "local_fallbacks": s.get("local_fallbacks"),
     }
 
 

@@ -489,14 +489,14 @@ def test_point_swarm_tables_have_no_footprint_column_and_car_rows_sort_last():
 
 
 def test_a_case_its_validation_refuses_fails_with_its_reason_and_the_others_run(tmp_path):
-    """A local step the car family does not take (the QP local step needs a linear model): the real
-    case fails in one line, settings are not blamed for it, and the centralised run still reports."""
-    with pytest.raises(RuntimeError, match=r"^1 of 2 bench cases failed .* crossing-M4-seed0-admm-qp: "):
-        run_bench(tmp_path, families=["crossing"], sizes=[4], seeds=1, jobs=1, max_steps=2, locals_=("qp",),
+    """A plane margin the scenario refuses (it applies to the ADMM case only): the real case fails
+    in one line, settings are not blamed for it, and the centralised run still reports."""
+    with pytest.raises(RuntimeError, match=r"^1 of 2 bench cases failed .* crossing-M4-seed0-admm: "):
+        run_bench(tmp_path, families=["crossing"], sizes=[4], seeds=1, jobs=1, max_steps=2, plane_margin=-1.0,
                   settings={"weights.R": 0.5})
     report = json.loads((tmp_path / "bench.json").read_text())
     (failure,) = report["failed"]
-    assert failure.startswith("crossing-M4-seed0-admm-qp: ScenarioError: solver.local: ") and "\n" not in failure
+    assert failure.startswith("crossing-M4-seed0-admm: ScenarioError: solver.plane_margin") and "\n" not in failure
     (row,) = report["rows"]
     assert (row["local"], row["runs"]) == ("centralized", 1) and row["agent_ms_median"] > 0
     assert report["runs"][0]["case"]["settings"] == [["weights.R", 0.5]]

@@ -74,7 +74,6 @@ def test_point_only_scenarios_are_written_without_a_model_key():
 
 BAD = [
     ({"dim": 3, "workspace": None}, "agents[0].model"),
-    ({"solver.method": "admm", "solver.local": "qp"}, "solver.local"),
     ({"weights.Qf": "lqr"}, "weights.Qf"),
     ({"agents.2.start": [0.0, -2.0, 90.0]}, "agents[2].start"),
     ({"agents.0.start": [-2.0, -0.4]}, "agents[0].start"),
@@ -102,10 +101,9 @@ def test_bad_car_scenarios_fail_in_one_line_naming_the_field(tmp_path: Path, cha
     assert not out.exists()
 
 
-def test_admm_with_cars_takes_ipopt_local_steps_only():
+def test_admm_with_cars_takes_either_local_step():
     assert scenario_from_dict(_scenario(**{"solver.method": "admm"})).solver.method == "admm"
-    with pytest.raises(ScenarioError, match="solver.local: qp needs a linear model"):
-        scenario_from_dict(_scenario(**{"solver.method": "admm", "solver.local": "qp"}))
+    assert scenario_from_dict(_scenario(**{"solver.method": "admm", "solver.local": "qp"})).solver.local == "qp"
 
 
 # ------------------------------------------------------------------ a short run's folder

@@ -104,9 +104,11 @@ def _plan_cost(swarm: FootprintSwarm, states: np.ndarray, inputs: np.ndarray) ->
     return total
 
 
-def test_one_admm_step_matches_the_centralised_plan() -> None:
+@pytest.mark.parametrize("local", ["ipopt", "qp"])
+def test_one_admm_step_matches_the_centralised_plan(local: str) -> None:
     swarm = swarm_of(car(horizon=15), car(horizon=15))
-    admm_states, admm_inputs, _ = _first_step(FootprintADMMSolver(swarm, FootprintADMMOptions(max_iter=200)), swarm)
+    options = FootprintADMMOptions(max_iter=200, local=local)
+    admm_states, admm_inputs, _ = _first_step(FootprintADMMSolver(swarm, options), swarm)
     central_states, central_inputs, _ = _first_step(FootprintCentralSolver(swarm), swarm)
     assert plan_violations(swarm, list(admm_states)) == []
     for i, agent in enumerate(swarm.agents):  # each plan flies the car's own dynamics
@@ -116,10 +118,11 @@ def test_one_admm_step_matches_the_centralised_plan() -> None:
     assert admm_cost <= 1.02 * central_cost
 
 
-def test_a_step_cut_short_is_repaired_to_a_safe_plan() -> None:
+@pytest.mark.parametrize("local", ["ipopt", "qp"])
+def test_a_step_cut_short_is_repaired_to_a_safe_plan(local: str) -> None:
     """Two iterations do not agree; the repair still leaves no pair closer than d_min."""
     swarm = swarm_of(car(horizon=15), car(horizon=15))
-    step = FootprintADMMSolver(swarm, FootprintADMMOptions(max_iter=2))
+    step = FootprintADMMSolver(swarm, FootprintADMMOptions(max_iter=2, local=local))
     starts, goals = (np.array(x, float) for x in HEAD_ON)
     result = step.plan(list(starts), list(goals), [straight_guess(a, starts[i], goals[i])
                                                    for i, a in enumerate(swarm.agents)])
@@ -131,9 +134,10 @@ def test_a_step_cut_short_is_repaired_to_a_safe_plan() -> None:
 
 
 @pytest.mark.loop
-def test_mixed_swarm_by_admm_reaches_every_goal_without_collision(tmp_path: Path) -> None:
+@pytest.mark.parametrize("local", ["ipopt", "qp"])
+def test_mixed_swarm_by_admm_reaches_every_goal_without_collision(tmp_path: Path, local: str) -> None:
     out = tmp_path / "run"
-    done = run_cli("run", "mixed", "--method", "admm", "--out", str(out), "--quiet")
+    done = run_cli("run", "mixed", "--method", "admm", "--local", local, "--out", str(out), "--quiet")
     assert done.returncode == 0, done.stderr
     summary, arrays = load_folder(out)
     assert summary["method"] == "admm" and summary["all_reached"] and summary["collisions"] == 0

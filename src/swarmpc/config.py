@@ -372,8 +372,8 @@ class AgentModelSpec(_Frozen):
     type: Literal["double_integrator", "car"] = Field(
         default="double_integrator",
         description="`double_integrator`: a point agent with an axis-aligned box body (`body`); `car`: a kinematic "
-        "bicycle with a rectangular footprint that turns with it (2D only; `solver.method` admm with "
-        "`solver.local: ipopt` or centralized). A car's `start` and `goal` are poses [x, y, heading_deg] or "
+        "bicycle with a rectangular footprint that turns with it (2D only; `solver.method` admm, with either "
+        "local step, or centralized). A car's `start` and `goal` are poses [x, y, heading_deg] or "
         "[x, y, heading_deg, speed] of the rear axle's centre, the heading in degrees from +x "
         "counter-clockwise; it needs a numeric `weights.Qf` (it has no linearisation for `lqr`).",
     )
@@ -647,8 +647,9 @@ class SolverConfig(_Frozen):
         default="admm",
         description="`admm`: consensus ADMM over the agents' local problems; `centralized`: one NLP over the "
         "whole swarm. A scenario with car agents (`agents[].model: car`) takes both: its ADMM agrees on footprint "
-        "poses with IPOPT local steps (`solver.local: ipopt`, `executor.type: serial`; the `admm` subsection does "
-        "not apply), its centralised NLP ignores `solver.local` and the ADMM keys.",
+        "poses (`executor.type: serial`; `solver.local: qp` solves each local step as a sequence of QPs about "
+        "the plan; the `admm` subsection does not apply), its centralised NLP ignores `solver.local` and the ADMM "
+        "keys.",
     )
     rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
     max_iter: int = Field(default=100, ge=1, le=MAX_ADMM_ITERATIONS, description="ADMM iteration cap per MPC step")
@@ -1339,14 +1340,12 @@ def _weight_error(which: str, value: ScalarOrMatrix, size: int) -> str | None:
 
 
 def _agent_model_errors(scn: Scenario, n: int) -> list[str]:
-    """What agent ``n``'s model cannot do in this scenario (a car: planar, IPOPT local steps, a numeric
+    """What agent ``n``'s model cannot do in this scenario (a car: planar, a serial executor, a numeric
     terminal weight, the nominal plant without noise), each a message naming the field."""
     if not scn.agents[n].model.is_car:
         return []
     problems = {
         f"agents[{n}].model: a car moves in the plane only (dim 2), got dim {scn.dim}": scn.dim != 2,
-        "solver.local: qp needs a linear model and a swarm with cars is solved with ipopt; set solver.local: ipopt":
-            scn.solver.method == "admm" and scn.solver.local == "qp",
         f"executor.type: {scn.executor.type} does not apply to a swarm with cars (its ADMM solves in the calling "
         "process); use serial": scn.executor.type != "serial",
         f"weights.Qf: lqr needs a linear model and agents[{n}] is a car; give a number or a matrix "

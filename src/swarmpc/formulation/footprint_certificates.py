@@ -68,6 +68,7 @@ __all__ = [
     "HalfspacePolygon",
     "PairCertificates",
     "PolytopeFootprintCertifier",
+    "best_direction",
     "best_pair_certificates",
     "certificate_value",
     "footprint_pair_rows",
@@ -100,7 +101,7 @@ def certificate_value(b_i: np.ndarray, b_j: np.ndarray, lam_ij: np.ndarray, lam_
     return -np.sum(np.asarray(b_i, float) * lam_ij, axis=-1) - np.sum(np.asarray(b_j, float) * lam_ji, axis=-1)
 
 
-def _best_direction(V_i: np.ndarray, V_j: np.ndarray) -> np.ndarray:
+def best_direction(V_i: np.ndarray, V_j: np.ndarray) -> np.ndarray:
     """The unit n (..., 2) maximising min_{P_j} n^T y - max_{P_i} n^T y over the candidates of the
     module docstring, for counter-clockwise polygons V_i (..., n, 2) and V_j (..., m, 2)."""
     lead = np.broadcast_shapes(V_i.shape[:-2], V_j.shape[:-2])
@@ -196,7 +197,7 @@ def rectangle_pair_certificates(
     """
     pose_i, pose_j = np.asarray(pose_i, float), np.asarray(pose_j, float)
     size_i, size_j = np.asarray(size_i, float), np.asarray(size_j, float)
-    normal = _best_direction(footprint_vertices(pose_i, size_i), footprint_vertices(pose_j, size_j))
+    normal = best_direction(footprint_vertices(pose_i, size_i), footprint_vertices(pose_j, size_j))
     lam_ij = _rectangle_multipliers(pose_i[..., 2], normal)
     lam_ji = _rectangle_multipliers(pose_j[..., 2], -normal)
     _, b_i = rectangle_halfspaces(pose_i[..., :2], pose_i[..., 2], size_i[..., 0], size_i[..., 1])
@@ -209,7 +210,7 @@ def best_pair_certificates(A_i: np.ndarray, b_i: np.ndarray, A_j: np.ndarray, b_
     (one pair; footprints or obstacles alike): ``lam_ij`` (rows of A_i,), ``lam_ji`` (rows of
     A_j,) and their value, the signed distance of the two polygons."""
     P_i, P_j = HalfspacePolygon(A_i, b_i), HalfspacePolygon(A_j, b_j)
-    normal = _best_direction(P_i.vertices, P_j.vertices)
+    normal = best_direction(P_i.vertices, P_j.vertices)
     lam_ij, normal = _unit_normal(P_i.multipliers(normal), P_i.A)
     lam_ji = P_j.multipliers(-normal)
     return PairCertificates(lam_ij, lam_ji, certificate_value(P_i.b, P_j.b, lam_ij, lam_ji))
@@ -234,7 +235,7 @@ class PolytopeFootprintCertifier:
         """Certificates of footprints of poses (..., 3) and sizes (..., 2): ``lam_ij`` (..., 4) of
         the footprint, ``lam_ji`` (..., m) of the obstacle and the signed distance ``value`` (...)."""
         pose, size = np.asarray(pose, float), np.asarray(size, float)
-        normal = _best_direction(footprint_vertices(pose, size), self.polygon.vertices)
+        normal = best_direction(footprint_vertices(pose, size), self.polygon.vertices)
         lam_ji, minus_normal = _unit_normal(self.polygon.multipliers(-normal), self.polygon.A)
         lam_ij = _rectangle_multipliers(pose[..., 2], -minus_normal)
         _, b_i = rectangle_halfspaces(pose[..., :2], pose[..., 2], size[..., 0], size[..., 1])

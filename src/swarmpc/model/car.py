@@ -100,9 +100,10 @@ class KinematicCar:
     the rear axle; the rectangular body (``footprint``) extends ``rear_overhang`` behind it, so
     its centre lies ``length / 2 - rear_overhang`` ahead of it along the heading (:meth:`pose`).
 
-    The model is nonlinear: :meth:`linear_matrices` is None, so the QP local step of ADMM (and a
-    ``Qf: lqr`` terminal weight) need a linearisation about a trajectory that the car does not
-    offer yet; the IPOPT local step and the centralised solver take its CasADi dynamics as they are.
+    The model is nonlinear: :meth:`linear_matrices` is None, so a ``Qf: lqr`` terminal weight is
+    refused. The IPOPT local step and the centralised solver take its CasADi dynamics as they
+    are; the QP local step of car ADMM (:mod:`swarmpc.solvers.footprint_qp`) expands them about
+    each round's plan.
 
     Parameters
     ----------
@@ -348,6 +349,6 @@ class KinematicCar:
         return path + self.body_radius * np.minimum(2.0, self.max_curvature * path)
 
     def linear_matrices(self) -> None:
-        """None: the bicycle is nonlinear (consumers needing (A, B), such as the QP local step and
-        the Riccati terminal weight, refuse the model with a ValueError)."""
+        """None: the bicycle is nonlinear (consumers needing one (A, B), such as the point agents'
+        QP local step and the Riccati terminal weight, refuse the model with a ValueError)."""
         return None

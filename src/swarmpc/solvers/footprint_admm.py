@@ -57,7 +57,9 @@ from swarmpc.model.footprint import rectangle_distance
 from swarmpc.solvers.base import PlanStep, braking_plan
 from swarmpc.solvers.dual_seed import pair_seed
 from swarmpc.solvers.footprint_central import nearest_heading, straight_guess
+from swarmpc.solvers.footprint_qp import FootprintLocalQP
 from swarmpc.solvers.guesses import agent_guess_blocks
+from swarmpc.solvers.qp_local import QPLocalOptions
 
 __all__ = ["FootprintADMMOptions", "FootprintADMMSolver", "coupled_pairs", "footprint_local_guess", "plan_violations"]
 
@@ -79,6 +81,11 @@ class FootprintADMMOptions:
     max_iter: int = 100
     tol: float = 1e-3
     coupling_margin: float = 0.5
+    local: str = "ipopt"
+    """The local step: ``ipopt`` (the NLP) or ``qp`` (:class:`~swarmpc.solvers.footprint_qp.FootprintLocalQP`,
+    whose failed calls are handed to IPOPT)."""
+    qp: QPLocalOptions = field(default_factory=QPLocalOptions)
+    """The QP local step's tolerances (``solver.qp``)."""
     carry_multipliers: bool = True
     """Start a step's multipliers from the previous step's, shifted (as the plans are), for every
     block whose holders are those of the previous step (:meth:`FootprintADMMSolver._start_agents`)."""
@@ -86,7 +93,8 @@ class FootprintADMMOptions:
     @classmethod
     def from_options(cls, options: SolverConfig) -> FootprintADMMOptions:
         margin = options.coupling_margin
-        return cls(options.rho, options.max_iter, options.tol, 0.5 if margin is None else margin)
+        return cls(options.rho, options.max_iter, options.tol, 0.5 if margin is None else margin,
+                   local=options.local, qp=QPLocalOptions.from_config(options.qp))
 
 
 def _euclidean_reach(agent: FootprintAgent, state: np.ndarray) -> float:
@@ -172,8 +180,11 @@ class _AgentState:
     solution: NLPSolution | None = None
     own_y: np.ndarray | None = None
     copy_y: dict[int, np.ndarray] = field(default_factory=dict)
+    qp: FootprintLocalQP | None = None
     seconds: float = 0.0
     failures: int = 0
+    handovers: int = 0
+    """QP calls that failed and were handed to IPOPT (``local: qp``)."""
 
     def block(self, agent: FootprintAgent) -> np.ndarray:
         assert self.solution is not None
@@ -209,6 +220,7 @@ class FootprintADMMSolver:
         self.swarm = swarm
         self.options = options
         self._problems: dict[tuple[int, tuple[NeighbourKind, ...]], CompiledNLP] = {}
+        self._qps: dict[tuple[int, tuple[NeighbourKind, ...]], FootprintLocalQP] = {}
         self._agents: list[_AgentState | None] = [None] * swarm.num_agents
         self._z: list[np.ndarray] | None = None
         """The last step's consensus, to start the next step's from (shifted)."""
@@ -226,6 +238,15 @@ class FootprintADMMSolver:
             self._problems[key] = build_footprint_local(self.swarm.agents[i], kinds)
         return self._problems[key]
 
+    def _qp(self, i: int, neighbours: tuple[int, ...]) -> FootprintLocalQP | None:
+        """Agent i's QP local step for these neighbours (``local: qp``), else None."""
+        if self.options.local != "qp":
+            return None
+        kinds = tuple(NeighbourKind.of(self.swarm.agents[j]) for j in neighbours)
+        if (i, kinds) not in self._qps:
+            self._qps[(i, kinds)] = FootprintLocalQP(self.swarm.agents[i], kinds, self.options.qp)
+        return self._qps[(i, kinds)]
+
     def _start_agents(self, pairs: list[tuple[int, int]]) -> None:
         """Every agent's state for a new step: the previous answer shifted when the neighbours
         are unchanged, and with ``carry_multipliers`` the multipliers of every stable block
@@ -240,7 +261,7 @@ class FootprintADMMSolver:
         stable = [previous is not None and previous.neighbours == order[i] for i, previous in enumerate(self._agents)]
         for i, neighbours in enumerate(order):
             previous = self._agents[i]
-            state = _AgentState(neighbours, self._problem(i, neighbours))
+            state = _AgentState(neighbours, self._problem(i, neighbours), qp=self._qp(i, neighbours))
             if previous is not None and stable[i] and previous.solution is not None:
                 state.solution = _shifted(previous.problem, previous.solution)
             if previous is not None and self.options.carry_multipliers:
@@ -272,12 +293,16 @@ class FootprintADMMSolver:
             own = consensus_block(agents[i], guess)
             params.update({"Z": own, "Y": np.zeros_like(own)})
         previous = state.solution
-        starts: list[tuple[dict[str, np.ndarray], np.ndarray | None, np.ndarray | None]] = []
-        if previous is not None:
-            starts.append((previous.x, previous.lam_x, previous.lam_g))
-        plan = guess if previous is None or fixed else np.asarray(previous.x["X"]).T
         neighbours = [agents[j] for j in state.neighbours]
         copies = [fixed[f"C{slot}"] if fixed else step.z[j] for slot, j in enumerate(state.neighbours)]
+        if state.qp is not None:
+            if self._solve_qp(state, params, guess, copies, fixed):
+                return True
+            previous = None  # hand the call to IPOPT, cold: a QP answer has no IPOPT multipliers
+        starts: list[tuple[dict[str, np.ndarray], np.ndarray | None, np.ndarray | None]] = []
+        if previous is not None and previous.lam_x.size:
+            starts.append((previous.x, previous.lam_x, previous.lam_g))
+        plan = guess if previous is None or fixed else np.asarray(previous.x["X"]).T
         starts.append((footprint_local_guess(agents[i], plan, neighbours, copies), None, None))
         for point, lam_x, lam_g in starts:
             solution = state.problem.solve(params, point, lam_x, lam_g, fixed)
@@ -286,6 +311,29 @@ class FootprintADMMSolver:
                 state.solution = solution
                 return True
             state.failures += 1
+        return False
+
+    def _solve_qp(
+        self, state: _AgentState, params: dict[str, np.ndarray], guess: np.ndarray, copies: list[np.ndarray],
+        fixed: dict[str, np.ndarray] | None,
+    ) -> bool:
+        """The QP local step, from the agent's last answer (its plan, inputs and copies) unless
+        this is a repair (from ``guess``, the agent's plan, with the copies pinned); keeps the
+        answer on success, and counts a failure as a hand-over to IPOPT."""
+        assert state.qp is not None
+        previous = state.solution
+        if previous is not None and not fixed:
+            plan, inputs = np.asarray(previous.x["X"]).T, np.asarray(previous.x["U"]).T
+            copies = [np.asarray(previous.x[f"C{slot}"]) for slot in range(len(copies))]
+        else:
+            plan, inputs = np.asarray(guess, float), None
+        solution = state.qp.solve(params, plan, inputs, copies, pinned=bool(fixed))
+        state.seconds += solution.solve_time
+        if solution.success:
+            state.solution = solution
+            return True
+        state.failures += 1
+        state.handovers += 1
         return False
 
     def _consensus(self, step: _Step) -> tuple[float, float]:
@@ -423,13 +471,14 @@ class FootprintADMMSolver:
         slacks = [float(np.max(value)) for state in self._agents if state is not None and state.solution is not None
                   for name, value in state.solution.x.items() if name.startswith("A") and value.size]
         failures = sum(state.failures for state in self._agents if state is not None)
+        handovers = sum(state.handovers for state in self._agents if state is not None)
         return PlanStep(
             states=np.array(plans), inputs=np.array(inputs), predicted_cost=cost,
             max_slack=max([0.0, *slacks]), wall_time=time.perf_counter() - started,
             agent_times=np.array([state.seconds for state in self._agents if state is not None]),
             failures=failures, fallback=fallback, admm_iterations=iterations, repaired=repaired,
             primal_residuals=step.primal, dual_residuals=step.dual,
-            rho_history=[step.rho] * len(step.primal), critical_path=step.critical,
+            rho_history=[step.rho] * len(step.primal), critical_path=step.critical, local_fallbacks=handovers,
         )
 
 
@@ -450,6 +499,9 @@ def _shifted(problem: CompiledNLP, solution: NLPSolution) -> NLPSolution:
     """A previous answer moved one step on (primal and multipliers), to warm-start the next step."""
     layout_x, layout_g = problem.x_layout, problem.g_layout
     x = shift_blocks(solution.x)
+    if not solution.lam_x.size:  # a QP answer: its blocks only
+        return NLPSolution(x=x, x_vec=solution.x_vec, lam_x=solution.lam_x, lam_g=solution.lam_g, cost=solution.cost,
+                           success=True, status=solution.status, iterations=0, solve_time=0.0)
     return NLPSolution(
         x=x, x_vec=layout_x.pack(x),
         lam_x=layout_x.pack(shift_blocks(layout_x.unpack(solution.lam_x))),
