@@ -22,26 +22,31 @@ plan and repeats:
 
        n^T corner_c(P_i) + d_min <= sigma <= n^T corner_c'(P_j)   for the 4 corners of each,
 
-   linear in the centres, and in the headings through corner_c = centre + R(theta) h_c. R(theta) h_c
-   is expanded about theta-bar; its error is at most |h_c| (theta - theta-bar)^2 / 2 (the second
-   derivative of R(theta) h has norm |h|), so with a trust region |theta - theta-bar| <= tau every
-   corner row is tightened by |h_c| tau^2 / 2 and every QP answer's poses keep d_min from their
-   copies exactly: the rows are a convex restriction of the OBCA condition, not an approximation
-   of it. A static obstacle is the same with its side held (its support along n). Point agents'
-   boxes do not turn: their rows are exact, with no trust region.
+   linear in the centres, and in the headings through corner_c = centre + R(theta) h_c, with
+   R(theta) h_c expanded about the current heading. A static obstacle is the same with its side
+   held (its support along n). Point agents' boxes do not turn: their rows are exact. Every
+   corner row has a slack priced at :data:`HARD_PENALTY` per metre (kappa in the soft form): an
+   exact penalty, so a QP always has an answer, and a plan that keeps d_min pays nothing.
 4. **Rounds.** Solve the QP (OSQP, set up once per problem shape, matrix values and vectors
-   updated in place, warm-started from the last answer), roll the inputs out, recompute the
-   normals and expansions, and repeat until the plan moves less than ``plan_tol`` (at least
-   :data:`PLAN_TOL_FLOOR`) or after ``max_rounds``. The next trust radius is twice the largest
-   heading change of the round (between :data:`MIN_TRUST` and :data:`TRUST_RADIUS`): it shrinks
-   as the plan settles, so the corner tightening vanishes at convergence (and the answer matches
-   the NLP's), and grows back while it binds.
+   updated in place, warm-started from the last answer) inside a trust region (headings within
+   tau of the current plan's, inputs within the same share of their range), roll its inputs out,
+   and keep the new plan only if it lowers the merit (:meth:`FootprintLocalQP.merit`: the NLP's
+   objective plus the price of the separation it lacks, by the exact distances); otherwise shrink
+   tau by :data:`SHRINK`. Stop when the plan moves less than ``plan_tol`` (at least
+   :data:`PLAN_TOL_FLOOR`), after ``max_rounds``, or when tau falls below :data:`MIN_TRUST`. A
+   fixed point (the plan optimal for the normals its own certificates give) is a KKT point of the
+   OBCA NLP, as for the point agents' loop; the tests compare the answers with IPOPT's.
 
-The rolled-out plan is then checked by the exact distances: its footprint against every static
-obstacle and, in a repair (copies pinned to neighbours' plans), against every pinned copy; and its
-reference point against the workspace. A hard-form plan that fails the check, or a QP that OSQP
-does not solve, is a failed call, which the ADMM hands to IPOPT
-(:class:`~swarmpc.solvers.footprint_admm.FootprintADMMSolver`).
+A round holds each pair on the side of its separating line that the start gives it, so the rounds
+keep the start's way round every neighbour. When the starting plan's footprint OVERLAPS a copy or
+an obstacle, the best normal is an axis of least penetration, a guess at the way round that the
+rounds would then hold (a head-on pair would stop nose to nose); such a call is answered failed
+without a QP, and the ADMM hands it to IPOPT, whose certificates choose the way round.
+
+The kept plan is then checked by the exact distances: its footprint against every static obstacle
+and, in a repair (copies pinned to neighbours' plans), against every pinned copy; and its
+reference point against the workspace. A hard-form plan that fails the check is a failed call,
+which the ADMM hands to IPOPT (:class:`~swarmpc.solvers.footprint_admm.FootprintADMMSolver`).
 
 The speed limit is a box on the car's speed state (the car's speed is signed and scalar); a point
 agent's speed limit is the inner polytope of :func:`~swarmpc.solvers.qp_local.speed_polytope`.
@@ -76,7 +81,7 @@ TRUST_RADIUS = 0.5
 """[rad] The largest heading change per round (the first round's trust radius)."""
 
 MIN_TRUST = 1e-3
-"""[rad] The smallest trust radius: its corner tightening |h| tau^2 / 2 is below a micrometre."""
+"""[rad] The rounds stop when the trust radius falls below this."""
 
 PLAN_TOL_FLOOR = 1e-4
 """[m, rad] The rounds stop once the rolled-out plan moves less than max(plan_tol, this)."""
@@ -436,8 +441,8 @@ class FootprintLocalQP:
         upper = np.full(self.rows.count, np.inf)
         self._trajectory_values(values, lower, upper, X, U, params)
         self._limit_values(lower, upper, X, U, C, tau, pinned)
-        self._pair_values(values, lower, upper, X, C, tau, params, pinned)
-        self._obstacle_values(values, lower, upper, X, tau)
+        self._pair_values(values, lower, X, C, params)
+        self._obstacle_values(values, lower, X)
         q = self._linear_cost(params)
         rho = float(np.asarray(params["rho"]).ravel()[0])
         P_values = self.P_base.copy()
@@ -506,22 +511,22 @@ class FootprintLocalQP:
             return size
         return 2.0 * (size - self.own.body)
 
+    @staticmethod
     def _corner_terms(
-        self, pose: np.ndarray, offsets: np.ndarray, normal: np.ndarray, oriented: bool, tau: float,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        pose: np.ndarray, offsets: np.ndarray, normal: np.ndarray, oriented: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """For poses (K, 3), corner offsets (4, 2) and normals (K, 2): the heading slope n' R'h
-        (K, 4), the constant n' (R h - R'h theta-bar) (K, 4) of n' corner, and the tightening
-        |h| tau^2 / 2 (4,) of the expansion (zero for a box that does not turn)."""
+        (K, 4) and the constant n' (R h - R'h theta-bar) (K, 4) of the expansion of n' corner
+        (for a box that does not turn: no slope, the constant n' h)."""
         if not oriented:
-            return np.zeros((len(pose), 4)), np.einsum("kd,cd->kc", normal, offsets), np.zeros(4)
+            return np.zeros((len(pose), 4)), np.einsum("kd,cd->kc", normal, offsets)
         turned, slope = _turned(pose[:, 2], offsets)
         n_slope = np.einsum("kd,kcd->kc", normal, slope)
-        constant = np.einsum("kd,kcd->kc", normal, turned) - n_slope * pose[:, 2:3]
-        return n_slope, constant, np.zeros(4)
+        return n_slope, np.einsum("kd,kcd->kc", normal, turned) - n_slope * pose[:, 2:3]
 
     def _pair_values(
-        self, values: np.ndarray, lower: np.ndarray, upper: np.ndarray, X: np.ndarray, C: Sequence[np.ndarray],
-        tau: float, params: dict[str, np.ndarray], pinned: bool,
+        self, values: np.ndarray, lower: np.ndarray, X: np.ndarray, C: Sequence[np.ndarray],
+        params: dict[str, np.ndarray],
     ) -> None:
         d_min, margin = self.own.settings.d_min, self.options.margin
         poses = self._poses(X[1:])
@@ -532,26 +537,23 @@ class FootprintLocalQP:
             copy_pose = _as_pose(C[slot][:, info.first - 1:])
             normal = best_direction(_vertices(own_pose, self.own.size), _vertices(copy_pose, size))
             self._normals.append(normal)
-            slope, constant, tight = self._corner_terms(own_pose, self.own_corners, normal, self.oriented, tau)
+            slope, constant = self._corner_terms(own_pose, self.own_corners, normal, self.oriented)
             _set(values, own, -normal, -slope)
-            lower[own[0]] = d_min + constant + tight + margin
-            slope, constant, tight = self._corner_terms(copy_pose, corner_offsets(size), normal, info.oriented,
-                                                        0.0 if pinned else tau)
+            lower[own[0]] = d_min + constant + margin
+            slope, constant = self._corner_terms(copy_pose, corner_offsets(size), normal, info.oriented)
             _set(values, copy, normal, slope)
-            lower[copy[0]] = -constant + tight
+            lower[copy[0]] = -constant
             lower[self.rows.blocks[f"pair_slack{slot}"]] = 0.0
 
-    def _obstacle_values(
-        self, values: np.ndarray, lower: np.ndarray, upper: np.ndarray, X: np.ndarray, tau: float,
-    ) -> None:
+    def _obstacle_values(self, values: np.ndarray, lower: np.ndarray, X: np.ndarray) -> None:
         s, margin = self.own.settings, self.options.margin
         pose = self._poses(X[s.first_constrained_step:])
         for o, (vertices, entries) in enumerate(zip(self.obstacle_vertices, self.obstacle_slots, strict=True)):
             normal = best_direction(_vertices(pose, self.own.size), vertices)
             support = np.min(normal @ vertices.T, axis=1)
-            slope, constant, tight = self._corner_terms(pose, self.own_corners, normal, self.oriented, tau)
+            slope, constant = self._corner_terms(pose, self.own_corners, normal, self.oriented)
             _set(values, entries, -normal, -slope)
-            lower[entries[0]] = s.d_min - support[:, None] + constant + tight + margin
+            lower[entries[0]] = s.d_min - support[:, None] + constant + margin
             lower[self.rows.blocks[f"obstacle_slack{o}"]] = 0.0
 
     def _linear_cost(self, params: dict[str, np.ndarray]) -> np.ndarray:
