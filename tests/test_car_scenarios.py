@@ -75,6 +75,7 @@ def test_point_only_scenarios_are_written_without_a_model_key():
 BAD = [
     ({"dim": 3, "workspace": None}, "agents[0].model"),
     ({"weights.Qf": "lqr"}, "weights.Qf"),
+    ({"solver.method": "admm", "solver.deadline": 0.1}, "solver.deadline"),
     ({"agents.2.start": [0.0, -2.0, 90.0]}, "agents[2].start"),
     ({"agents.0.start": [-2.0, -0.4]}, "agents[0].start"),
     ({"agents.1.start": [-1.7, -0.3, 30.0]}, "agents[1].start"),  # footprints overlap at the starts

@@ -1340,14 +1340,16 @@ def _weight_error(which: str, value: ScalarOrMatrix, size: int) -> str | None:
 
 
 def _agent_model_errors(scn: Scenario, n: int) -> list[str]:
-    """What agent ``n``'s model cannot do in this scenario (a car: planar, a serial executor, a numeric
-    terminal weight, the nominal plant without noise), each a message naming the field."""
+    """What agent ``n``'s model cannot do in this scenario (a car: planar, a serial executor, no ADMM
+    deadline, a numeric terminal weight, the nominal plant without noise), each a message naming the field."""
     if not scn.agents[n].model.is_car:
         return []
     problems = {
         f"agents[{n}].model: a car moves in the plane only (dim 2), got dim {scn.dim}": scn.dim != 2,
         f"executor.type: {scn.executor.type} does not apply to a swarm with cars (its ADMM solves in the calling "
         "process); use serial": scn.executor.type != "serial",
+        "solver.deadline: the ADMM of a swarm with cars has no deadline (it runs each step to its tolerance); "
+        "remove the key": scn.solver.method == "admm" and scn.solver.deadline is not None,
         f"weights.Qf: lqr needs a linear model and agents[{n}] is a car; give a number or a matrix "
         "(e.g. Qf: 10)": scn.weights.Qf == "lqr",
         "plant.type: mujoco simulates point agents only, not car agents": scn.plant.type == "mujoco",
