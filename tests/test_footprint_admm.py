@@ -177,3 +177,23 @@ def test_multipliers_carried_to_a_new_step_keep_summing_to_zero_per_block() -> N
     assert max(_block_sums(solver)) < 1e-9
     carried = solver._agents[0]
     assert carried is not None and carried.neighbours == (1,) and 1 not in carried.copy_y
+
+
+def test_owner_weighted_consensus_leans_to_the_owner_and_keeps_multipliers_summing_to_zero() -> None:
+    """With owner weight w the consensus of a block is the penalty-weighted mean of its holders:
+    after one iteration z lies w times closer to the owner's block than to the copy, and the
+    block's multipliers (w rho (v - z) and rho (c - z)) still sum to zero."""
+    swarm = swarm_of(car(horizon=15), car(horizon=15))
+    weight, rho = 4.0, 10.0
+    solver = FootprintADMMSolver(swarm, FootprintADMMOptions(rho=rho, max_iter=1, owner_weight=weight))
+    _first_step(solver, swarm)
+    assert max(_block_sums(solver)) < 1e-9
+    for j, state in enumerate(solver._agents):
+        assert state is not None and state.own_y is not None and solver._z is not None
+        owner_offset = state.own_y / (rho * weight)  # v - z
+        other = solver._agents[1 - j]
+        assert other is not None
+        copy_offset = other.copy_y[j] / rho  # c - z
+        assert np.allclose(weight * np.abs(owner_offset), np.abs(copy_offset))
+        assert np.max(np.abs(copy_offset)) > 1e-6  # the holders disagreed: a real test
+

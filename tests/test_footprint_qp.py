@@ -35,15 +35,16 @@ def _params(own: FootprintAgent, others: list[FootprintAgent], guess: np.ndarray
 
 
 def _both(own: FootprintAgent, others: list[FootprintAgent], start: np.ndarray, goal: np.ndarray,
-          copies: list[np.ndarray], pinned: bool = False):  # type: ignore[no-untyped-def]
+          copies: list[np.ndarray], pinned: bool = False, owner_weight: float = 1.0):  # type: ignore[no-untyped-def]
     """IPOPT's and the QP's answers to one local problem from the straight guess."""
     kinds = tuple(NeighbourKind.of(other) for other in others)
     guess = straight_guess(own, start, goal) if own.oriented else np.linspace(start, goal, HORIZON + 1)
     params = _params(own, others, guess, copies, goal)
     fixed = {f"C{slot}": copy for slot, copy in enumerate(copies)} if pinned else None
-    nlp = build_footprint_local(own, kinds).solve(params, footprint_local_guess(own, guess, others, copies),
-                                                  fixed=fixed)
-    qp = FootprintLocalQP(own, kinds, QPLocalOptions(max_rounds=50)).solve(params, guess, None, copies, pinned)
+    nlp = build_footprint_local(own, kinds, owner_weight=owner_weight).solve(
+        params, footprint_local_guess(own, guess, others, copies), fixed=fixed)
+    qp = FootprintLocalQP(own, kinds, QPLocalOptions(max_rounds=50), owner_weight).solve(params, guess, None, copies,
+                                                                                         pinned)
     return nlp, qp
 
 
@@ -60,12 +61,14 @@ def test_a_turned_corner_and_its_slope_match_the_rotation(theta: float, length: 
     assert np.allclose(slope[0], (ahead[0] - behind[0]) / (2 * h), atol=1e-8)
 
 
-def test_a_car_passing_a_copy_reaches_the_nlp_optimum() -> None:
+@pytest.mark.parametrize("owner_weight", [1.0, 5.0])
+def test_a_car_passing_a_copy_reaches_the_nlp_optimum(owner_weight: float) -> None:
     """A car drives past a free copy of a car parked beside its way (closer than d_min to the
     straight way, not on it): both steps find one optimum."""
     own, other = car(horizon=HORIZON), car(horizon=HORIZON)
     parked = np.tile(np.array([[0.0], [0.55], [0.2]]), (1, HORIZON))
-    nlp, qp = _both(own, [other], np.array([-2.0, 0.0, 0.0, 0.0]), np.array([2.0, 0.0, 0.0, 0.0]), [parked])
+    nlp, qp = _both(own, [other], np.array([-2.0, 0.0, 0.0, 0.0]), np.array([2.0, 0.0, 0.0, 0.0]), [parked],
+                    owner_weight=owner_weight)
     assert nlp.success and qp.success
     assert qp.cost == pytest.approx(nlp.cost, rel=1e-3)
     assert np.abs(qp.x["X"] - nlp.x["X"]).max() < 1e-2

@@ -648,8 +648,8 @@ class SolverConfig(_Frozen):
         description="`admm`: consensus ADMM over the agents' local problems; `centralized`: one NLP over the "
         "whole swarm. A scenario with car agents (`agents[].model: car`) takes both: its ADMM agrees on footprint "
         "poses (`executor.type: serial`; `solver.local: qp` solves each local step as a sequence of QPs about "
-        "the plan; the `admm` subsection does not apply), its centralised NLP ignores `solver.local` and the ADMM "
-        "keys.",
+        "the plan; of the `admm` subsection only `owner_weight` applies), its centralised NLP ignores "
+        "`solver.local` and the ADMM keys.",
     )
     rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
     max_iter: int = Field(default=100, ge=1, le=MAX_ADMM_ITERATIONS, description="ADMM iteration cap per MPC step")

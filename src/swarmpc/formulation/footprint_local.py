@@ -16,7 +16,8 @@ Names: the agent's blocks have the empty tag (``X``, ``U``, ``x0``, ``goal``, ``
 per slot s: copy ``C{s}``, certificates ``Li{s}`` (own footprint) and ``Lj{s}`` (the copy's) or,
 between point agents, ``Lp{s}``, soft slack ``Ap{s}``. Consensus parameters: ``rho`` (1, 1),
 ``Z`` and ``Y`` (own block), ``Z{s}`` and ``Y{s}`` per slot; the cost adds
-``rho / 2 ||v - Z + Y / rho||^2`` over each block v (the scaled form of consensus ADMM: Y is the
+``rho / 2 ||v - Z + Y / rho||^2`` over each copy v and the same with ``rho * owner_weight`` (a
+build argument, default 1) over the own block (the scaled form of consensus ADMM: Y is the
 block's multiplier). A slot's neighbour size is the parameter ``S{s}`` (:func:`slot_size`), so
 one problem serves every neighbour of the same kind (:class:`NeighbourKind`).
 """
@@ -101,6 +102,7 @@ def _add_slot(
 
 def build_footprint_local(
     own: FootprintAgent, neighbours: Sequence[NeighbourKind], options: dict[str, Any] | None = None,
+    owner_weight: float = 1.0,
 ) -> CompiledNLP:
     """Agent ``own``'s local problem against copies of neighbours of the given kinds (names in the
     module docstring), built once per sequence of kinds (sizes are parameters); IPOPT with the
@@ -115,7 +117,8 @@ def build_footprint_local(
     Z = builder.parameter("Z", block_rows(own), own.settings.horizon)
     Y = builder.parameter("Y", block_rows(own), own.settings.horizon)
     block = own.casadi_poses(X[:, 1:])[: block_rows(own), :]
-    builder.cost += 0.5 * rho * ca.sumsqr(block - Z + Y / rho)
+    rho_own = rho * owner_weight
+    builder.cost += 0.5 * rho_own * ca.sumsqr(block - Z + Y / rho_own)
     for slot, other in enumerate(neighbours):
         _add_slot(builder, slot, own, other, X, rho)
     kinds = "".join("c" if n.oriented else "p" for n in neighbours)

@@ -13,7 +13,8 @@ One MPC step (:meth:`FootprintADMMSolver.plan`):
    (:func:`~swarmpc.formulation.footprint_local.consensus_block`); its holders are the agent
    itself and every neighbour (its copy). Per iteration every agent solves its local problem
    with IPOPT (warm-started from its previous iterate), the consensus of a block is the mean of
-   its holders' ``v + Y / rho``, and each holder's Y moves by ``rho (v - z)``. It stops when the
+   its holders' ``v + Y / rho_b`` weighted by their penalties rho_b (``rho * owner_weight`` for the
+   agent's own block, ``rho`` for a copy), and each holder's Y moves by ``rho_b (v - z)``. It stops when the
    largest primal residual ``|v - z|`` and dual residual ``rho |z - z_previous|`` are both
    below ``tol``, or after ``max_iter`` iterations.
 3. **Safety.** In the hard form the agents' own plans are checked pairwise by the exact distance
@@ -89,12 +90,16 @@ class FootprintADMMOptions:
     carry_multipliers: bool = True
     """Start a step's multipliers from the previous step's, shifted (as the plans are), for every
     block whose holders are those of the previous step (:meth:`FootprintADMMSolver._start_agents`)."""
+    owner_weight: float = 1.0
+    """Weight w of an agent's own block against each copy of it: its penalty is rho * w and the
+    consensus is the penalty-weighted mean of the holders' values."""
 
     @classmethod
     def from_options(cls, options: SolverConfig) -> FootprintADMMOptions:
         margin = options.coupling_margin
         return cls(options.rho, options.max_iter, options.tol, 0.5 if margin is None else margin,
-                   local=options.local, qp=QPLocalOptions.from_config(options.qp))
+                   owner_weight=options.admm.owner_weight, local=options.local,
+                   qp=QPLocalOptions.from_config(options.qp))
 
 
 def _euclidean_reach(agent: FootprintAgent, state: np.ndarray) -> float:
@@ -235,7 +240,8 @@ class FootprintADMMSolver:
         kinds = tuple(NeighbourKind.of(self.swarm.agents[j]) for j in neighbours)
         key = (i, kinds)
         if key not in self._problems:
-            self._problems[key] = build_footprint_local(self.swarm.agents[i], kinds)
+            self._problems[key] = build_footprint_local(self.swarm.agents[i], kinds,
+                                                        owner_weight=self.options.owner_weight)
         return self._problems[key]
 
     def _qp(self, i: int, neighbours: tuple[int, ...]) -> FootprintLocalQP | None:
@@ -244,7 +250,8 @@ class FootprintADMMSolver:
             return None
         kinds = tuple(NeighbourKind.of(self.swarm.agents[j]) for j in neighbours)
         if (i, kinds) not in self._qps:
-            self._qps[(i, kinds)] = FootprintLocalQP(self.swarm.agents[i], kinds, self.options.qp)
+            self._qps[(i, kinds)] = FootprintLocalQP(self.swarm.agents[i], kinds, self.options.qp,
+                                                     self.options.owner_weight)
         return self._qps[(i, kinds)]
 
     def _start_agents(self, pairs: list[tuple[int, int]]) -> None:
@@ -346,13 +353,16 @@ class FootprintADMMSolver:
             for j in state.neighbours:
                 holders[j].append((state.copy(j), state.copy_y.get(j), i, j))
         primal = dual = 0.0
+        weight = self.options.owner_weight
         for j, values in enumerate(holders):
-            z = np.mean([v + (0.0 if y is None else y / rho) for v, y, _, _ in values], axis=0)
+            penalties = [rho * (weight if owner < 0 else 1.0) for _, _, _, owner in values]
+            z = np.sum([r * v + (0.0 if y is None else y) for r, (v, y, _, _) in zip(penalties, values, strict=True)],
+                       axis=0) / sum(penalties)
             dual = max(dual, rho * float(np.max(np.abs(z - step.z[j]))))
             step.z[j] = z
-            for v, y, holder, owner in values:
+            for r, (v, y, holder, owner) in zip(penalties, values, strict=True):
                 primal = max(primal, float(np.max(np.abs(v - z))))
-                updated = (0.0 if y is None else y) + rho * (v - z)
+                updated = (0.0 if y is None else y) + r * (v - z)
                 if owner < 0:
                     agents[holder].own_y = updated  # type: ignore[union-attr]
                 else:

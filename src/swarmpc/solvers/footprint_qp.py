@@ -90,11 +90,16 @@ MERIT_DECREASE = 1e-9
 """A round's plan is kept when it lowers the merit by at least this much (relative)."""
 
 SHRINK = 0.25
-"""The trust radius's factor after a round whose plan did not lower the merit."""
+"""After a round whose plan did not lower the merit, the trust radius is this share of how far
+that round moved (:meth:`FootprintLocalQP._step_size`)."""
 
 HARD_PENALTY = 1e3
 """The price per metre of separation a hard-form plan lacks, in the QPs (an exact penalty on the
 corner rows' slacks) and in the merit; the soft form's is kappa."""
+
+NORMAL_HYSTERESIS = 1e-4
+"""[m] A round keeps the previous round's normal of a pair and step unless the best one certifies
+more than this much more distance."""
 
 CHECK_TOLERANCE = 1e-6
 """[m] How far below d_min (or outside the workspace) the exact check lets a plan be: the ADMM's
@@ -236,11 +241,14 @@ class _Dynamics:
 
 class FootprintLocalQP:
     """One agent's local step against copies of neighbours of given kinds, as a sequence of QPs
-    (module docstring). Built once per agent and sequence of neighbour kinds; OSQP is set up on
-    the first call and updated in place after."""
+    (module docstring); ``owner_weight`` as in
+    :func:`~swarmpc.formulation.footprint_local.build_footprint_local`. Built once per agent and
+    sequence of neighbour kinds; OSQP is set up on the first call and updated in place after."""
 
-    def __init__(self, own: FootprintAgent, kinds: Sequence[NeighbourKind], options: QPLocalOptions) -> None:
-        self.own, self.options = own, options
+    def __init__(
+        self, own: FootprintAgent, kinds: Sequence[NeighbourKind], options: QPLocalOptions, owner_weight: float = 1.0,
+    ) -> None:
+        self.own, self.options, self.owner_weight = own, options, owner_weight
         s = own.settings
         self.slots = [_Slot(k.oriented, min(s.first_constrained_step, k.first_step),
                             s.horizon + 1 - min(s.first_constrained_step, k.first_step)) for k in kinds]
@@ -252,6 +260,8 @@ class FootprintLocalQP:
         self.obstacle_vertices = [polygon_vertices(G, g) for G, g in s.obstacles]
         self.oriented = own.oriented  # read once: the protocol check behind it is slow
         self._normals: list[np.ndarray] | None = None
+        self._obstacle_normals: list[np.ndarray] = []
+        """The last round's normals (per slot, per obstacle): held on where still nearly best."""
         self.speed = None if own.oriented or s.speed is None else speed_polytope(2)
         model: Any = s.model
         self.heading_row: int = model.heading_row if own.oriented else -1
@@ -284,14 +294,16 @@ class FootprintLocalQP:
                     self.P.add(min(index[a], index[b]), max(index[a], index[b]), value)
 
     def _cost_pattern(self) -> None:
-        """2 Q on x_0..x_{N-1}, 2 Qf on x_N, 2 R on the inputs; rho on the poses and copies (slots)."""
+        """2 Q on x_0..x_{N-1}, 2 Qf on x_N, 2 R on the inputs; rho * owner_weight on the poses and
+        rho on the copies (set per call)."""
         s, lay = self.own.settings, self.layout
         for k in range(s.horizon):
             self._dense_upper(lay.X[:, k], s.Q)
             self._dense_upper(lay.U[:, k], s.R)
         self._dense_upper(lay.X[:, s.horizon], s.Qf)
-        consensus = np.concatenate([lay.pose.ravel(), *[c.ravel() for c in lay.copies]])
-        self.rho_slots = self.P.add(consensus, consensus, 0.0)
+        own, copies = lay.pose.ravel(), np.concatenate([np.zeros(0, int), *[c.ravel() for c in lay.copies]])
+        self.own_rho_slots = self.P.add(own, own, 0.0)
+        self.rho_slots = self.P.add(copies, copies, 0.0)
 
     def _trajectory_rows(self) -> None:
         """x_0 = measured; x_{k+1} - A_k x_k - B_k u_k = c_k; pose_k - J_k x_k = p_k."""
@@ -399,9 +411,9 @@ class FootprintLocalQP:
             if candidate.merit > current.merit - MERIT_DECREASE * (1.0 + abs(current.merit)):
                 if moved < tol:  # settled: the QP's answer is the plan it started from
                     break
-                loop.tau *= SHRINK  # the expansion misled: the next round stays closer
+                loop.tau = SHRINK * self._step_size(current, candidate)  # misled: the next round stays closer
                 continue
-            if self._turn(current, candidate) > 0.5 * loop.tau:  # the heading trust region bound: widen it
+            if self._step_size(current, candidate) > 0.5 * loop.tau:  # the trust region bound: widen it
                 loop.tau = min(TRUST_RADIUS, 2.0 * loop.tau)
             current = candidate
             if moved < tol:
@@ -422,6 +434,15 @@ class FootprintLocalQP:
         plan = _Plan(self.dynamics.rollout(np.asarray(params["x0"], float).ravel(), U), U, C)
         plan.merit = self.merit(plan, params)
         return plan
+
+    def _step_size(self, old: _Plan, new: _Plan) -> float:
+        """How far a round moved, in units of the trust radius: the largest heading change (the
+        agent's and its car copies') or input change (as the share of TRUST_RADIUS its range's half
+        is), whichever is larger."""
+        s = self.own.settings
+        low, high = s.model.input_bounds(s.accel, s.speed)
+        inputs = float(np.max(np.abs(new.U - old.U) / (0.5 * (high - low)))) * TRUST_RADIUS
+        return max(inputs, self._turn(old, new))
 
     def _turn(self, old: _Plan, new: _Plan) -> float:
         """The largest heading change between two plans: the agent's (a car) and its car copies'."""
@@ -447,6 +468,7 @@ class FootprintLocalQP:
         rho = float(np.asarray(params["rho"]).ravel()[0])
         P_values = self.P_base.copy()
         P_values[self.rho_slots] = rho
+        P_values[self.own_rho_slots] = rho * self.owner_weight
         A_data, P_data = self.A.data(values), self.P.data(P_values)
         if not self._ready:
             self._backend.setup(_csc(self.P_matrix, P_data), q, _csc(self.A_matrix, A_data), lower, upper)
@@ -530,12 +552,15 @@ class FootprintLocalQP:
     ) -> None:
         d_min, margin = self.own.settings.d_min, self.options.margin
         poses = self._poses(X[1:])
-        self._normals = []
+        previous, self._normals = self._normals, []
         for slot, (info, (own, copy)) in enumerate(zip(self.slots, self.pair_slots, strict=True)):
             size = self._copy_size(params, slot)
             own_pose = poses[info.first - 1:]
             copy_pose = _as_pose(C[slot][:, info.first - 1:])
-            normal = best_direction(_vertices(own_pose, self.own.size), _vertices(copy_pose, size))
+            own_vertices, copy_vertices = _vertices(own_pose, self.own.size), _vertices(copy_pose, size)
+            normal = best_direction(own_vertices, copy_vertices)
+            if previous is not None:
+                normal = _steady(previous[slot], normal, own_vertices, copy_vertices)
             self._normals.append(normal)
             slope, constant = self._corner_terms(own_pose, self.own_corners, normal, self.oriented)
             _set(values, own, -normal, -slope)
@@ -548,8 +573,13 @@ class FootprintLocalQP:
     def _obstacle_values(self, values: np.ndarray, lower: np.ndarray, X: np.ndarray) -> None:
         s, margin = self.own.settings, self.options.margin
         pose = self._poses(X[s.first_constrained_step:])
+        previous, self._obstacle_normals = self._obstacle_normals, []
         for o, (vertices, entries) in enumerate(zip(self.obstacle_vertices, self.obstacle_slots, strict=True)):
-            normal = best_direction(_vertices(pose, self.own.size), vertices)
+            own_vertices = _vertices(pose, self.own.size)
+            normal = best_direction(own_vertices, vertices)
+            if o < len(previous):
+                normal = _steady(previous[o], normal, own_vertices, vertices)
+            self._obstacle_normals.append(normal)
             support = np.min(normal @ vertices.T, axis=1)
             slope, constant = self._corner_terms(pose, self.own_corners, normal, self.oriented)
             _set(values, entries, -normal, -slope)
@@ -565,7 +595,7 @@ class FootprintLocalQP:
         q = np.zeros(lay.size)
         q[lay.X[:, :-1]] = (-2.0 * s.Q @ goal)[:, None]
         q[lay.X[:, -1]] = -2.0 * s.Qf @ goal
-        q[lay.pose] = np.asarray(params["Y"], float) - rho * np.asarray(params["Z"], float)
+        q[lay.pose] = np.asarray(params["Y"], float) - rho * self.owner_weight * np.asarray(params["Z"], float)
         for slot, index in enumerate(lay.copies):
             q[index] = np.asarray(params[f"Y{slot}"], float) - rho * np.asarray(params[f"Z{slot}"], float)
         for slack in [*lay.pair_slack, *lay.obstacle_slack]:
@@ -635,10 +665,8 @@ class FootprintLocalQP:
         distance, by weak duality), so the exact distance is computed only where it can matter."""
         if self._normals is None:
             return np.ones(len(own), bool)
-        normal = self._normals[slot]
-        low = np.min(np.einsum("kcd,kd->kc", _vertices(other, size), normal), axis=1)
-        high = np.max(np.einsum("kcd,kd->kc", _vertices(own, self.own.size), normal), axis=1)
-        return low - high < self.own.settings.d_min
+        gap = _gap_along(self._normals[slot], _vertices(own, self.own.size), _vertices(other, size))
+        return gap < self.own.settings.d_min
 
     def _poses(self, X: np.ndarray) -> np.ndarray:
         """Footprint poses (K, 3) of states (K, n) (:meth:`FootprintAgent.poses`, without its
@@ -673,10 +701,11 @@ class FootprintLocalQP:
         err = plan.X - goal
         cost = float(np.einsum("ki,ij,kj->", err[:-1], s.Q, err[:-1]) + np.einsum("ki,ij,kj->", plan.U, s.R, plan.U)
                      + err[-1] @ s.Qf @ err[-1])
-        terms = [(consensus_block(self.own, plan.X), "")] + [(c, str(slot)) for slot, c in enumerate(plan.C)]
-        for value, tag in terms:
+        terms = [(consensus_block(self.own, plan.X), "", rho * self.owner_weight)]
+        terms += [(c, str(slot), rho) for slot, c in enumerate(plan.C)]
+        for value, tag, penalty in terms:
             z, y = np.asarray(params[f"Z{tag}"], float), np.asarray(params[f"Y{tag}"], float)
-            cost += 0.5 * rho * float(np.sum((value - z + y / rho) ** 2))
+            cost += 0.5 * penalty * float(np.sum((value - z + y / penalty) ** 2))
         return cost + s.kappa * sum(float(np.sum(v)) for k, v in blocks.items() if k.startswith("A"))
 
     def _clear(self, plan: _Plan, params: dict[str, np.ndarray], pinned: bool) -> bool:
@@ -703,6 +732,23 @@ def _set(values: np.ndarray, entries: tuple[np.ndarray, np.ndarray, np.ndarray |
     values[entries[1]] = normal[:, None, :]
     if entries[2] is not None:
         values[entries[2]] = slope
+
+
+def _gap_along(normal: np.ndarray, V_i: np.ndarray, V_j: np.ndarray) -> np.ndarray:
+    """min_{P_j} n' y - max_{P_i} n' y (K,) of polygons V_i, V_j (K, c, 2) along normals (K, 2) (or
+    one polygon V_j (c, 2)): the certificate's value along n, a lower bound on the distance."""
+    V_j = np.broadcast_to(V_j, (len(normal), *V_j.shape[-2:]))
+    low = np.min(np.einsum("kcd,kd->kc", V_j, normal), axis=1)
+    return low - np.max(np.einsum("kcd,kd->kc", V_i, normal), axis=1)
+
+
+def _steady(previous: np.ndarray, best: np.ndarray, V_i: np.ndarray, V_j: np.ndarray) -> np.ndarray:
+    """The normals (K, 2) a round holds: the previous round's where its value is within
+    :data:`NORMAL_HYSTERESIS` of the best one's, else the best. Two candidate directions of (nearly)
+    equal value, as the edge normals of two footprints side by side, would otherwise take turns
+    from round to round, and each turn moves the answer."""
+    keep = _gap_along(previous, V_i, V_j) >= _gap_along(best, V_i, V_j) - NORMAL_HYSTERESIS
+    return np.where(keep[:, None], previous, best)
 
 
 def _as_pose(block: np.ndarray) -> np.ndarray:
