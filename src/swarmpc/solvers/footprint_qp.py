@@ -611,25 +611,37 @@ class FootprintLocalQP:
 
     # ---- the answer ----------------------------------------------------------------------------
     def _gaps(
-        self, X: np.ndarray, C: Sequence[np.ndarray], params: dict[str, np.ndarray],
+        self, X: np.ndarray, C: Sequence[np.ndarray], params: dict[str, np.ndarray], pairs: bool = True,
+        below: float = np.inf,
     ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """Exact signed distances of a plan's footprint: per slot (K_s,) to the copy's, per
-        obstacle (K_o,) to the obstacle."""
+        """Exact signed distances of a plan's footprint: per slot (K_s,) to the copy's (none unless
+        ``pairs``), per obstacle (K_o,) to the obstacle. A pair's step that the last round's normal
+        already shows to be ``below`` apart or more is left at that lower bound (:meth:`_bound`)."""
         s = self.own.settings
         poses = self._poses(X)
-        pairs = [rectangle_distance(poses[info.first:], self.own.size, _as_pose(C[slot][:, info.first - 1:]),
-                                    self._copy_size(params, slot), signed=True) for slot, info in enumerate(self.slots)]
+        gaps = []
+        for slot, info in enumerate(self.slots if pairs else []):
+            own, size = poses[info.first:], self._copy_size(params, slot)
+            other = _as_pose(C[slot][:, info.first - 1:])
+            gap, near = self._bound(slot, own, other, size), np.ones(len(own), bool)
+            if gap is not None:
+                near = gap < below
+            else:
+                gap = np.full(len(own), np.inf)
+            if near.any():
+                gap[near] = rectangle_distance(own[near], self.own.size, other[near], size, signed=True)
+            gaps.append(gap)
         first = s.first_constrained_step
         obstacles = [rectangle_polytope_distance(poses[first:], self.own.size, G, g, signed=True)
                      for G, g in s.obstacles]
-        return pairs, obstacles
+        return gaps, obstacles
 
     def _overlaps(self, plan: _Plan, params: dict[str, np.ndarray]) -> bool:
         """True when the plan's footprint overlaps a copy's or an obstacle at some step (signed
         distance < 0). The best normal of an overlapping pair is its axis of least penetration, a
         guess at which way round the other the agent should go; a round would hold that guess as a
         constraint, and the rounds keep whatever side they start on. Such a call is the NLP's."""
-        pairs, obstacles = self._gaps(plan.X, plan.C, params)
+        pairs, obstacles = self._gaps(plan.X, plan.C, params, below=0.0)
         return any(gap.size and float(np.min(gap)) < 0.0 for gap in [*pairs, *obstacles])
 
     def _outside(self, X: np.ndarray) -> float:
@@ -644,29 +656,17 @@ class FootprintLocalQP:
         """The local NLP's objective plus a price on what the plan lacks of d_min from its copies
         and obstacles and of the workspace (kappa in the soft form, :data:`HARD_PENALTY` in the
         hard form): the rounds keep a plan only when it lowers this."""
-        s = self.own.settings
-        poses = self._poses(plan.X)
-        short = 0.0
-        for slot, info in enumerate(self.slots):
-            own, size = poses[info.first:], self._copy_size(params, slot)
-            other = _as_pose(plan.C[slot][:, info.first - 1:])
-            near = self._maybe_near(slot, own, other, size)
-            if near.any():
-                gap = rectangle_distance(own[near], self.own.size, other[near], size, signed=True)
-                short += float(np.sum(np.maximum(0.0, s.d_min - gap)))
-        for G, g in s.obstacles:
-            gap = rectangle_polytope_distance(poses[s.first_constrained_step:], self.own.size, G, g, signed=True)
-            short += float(np.sum(np.maximum(0.0, s.d_min - gap)))
+        pairs, obstacles = self._gaps(plan.X, plan.C, params, below=self.own.settings.d_min)
+        d_min = self.own.settings.d_min
+        short = sum(float(np.sum(np.maximum(0.0, d_min - gap))) for gap in [*pairs, *obstacles])
         return self.objective(plan, {}, params) + self.price * (short + self._outside(plan.X))
 
-    def _maybe_near(self, slot: int, own: np.ndarray, other: np.ndarray, size: np.ndarray) -> np.ndarray:
-        """Steps (K_s,) whose footprints may be closer than d_min: all but those that the last
-        round's normal already separates by d_min (its projection gap is a lower bound on the
-        distance, by weak duality), so the exact distance is computed only where it can matter."""
+    def _bound(self, slot: int, own: np.ndarray, other: np.ndarray, size: np.ndarray) -> np.ndarray | None:
+        """A lower bound (K_s,) on the distance of a slot's footprints at each step: their gap
+        along the last round's normals (weak duality); None before the first round."""
         if self._normals is None:
-            return np.ones(len(own), bool)
-        gap = _gap_along(self._normals[slot], _vertices(own, self.own.size), _vertices(other, size))
-        return gap < self.own.settings.d_min
+            return None
+        return _gap_along(self._normals[slot], _vertices(own, self.own.size), _vertices(other, size))
 
     def _poses(self, X: np.ndarray) -> np.ndarray:
         """Footprint poses (K, 3) of states (K, n) (:meth:`FootprintAgent.poses`, without its
@@ -712,8 +712,8 @@ class FootprintLocalQP:
         """The exact check of a hard-form plan: footprint against every obstacle, reference point
         within the workspace, and in a repair footprint against every pinned copy."""
         d_min = self.own.settings.d_min
-        pairs, obstacles = self._gaps(plan.X, plan.C, params)
-        gaps = [*obstacles, *(pairs if pinned else [])]
+        pairs, obstacles = self._gaps(plan.X, plan.C, params, pairs=pinned, below=d_min)
+        gaps = [*obstacles, *pairs]
         if any(float(np.min(gap)) < d_min - CHECK_TOLERANCE for gap in gaps if gap.size):
             return False
         return self._outside(plan.X) <= CHECK_TOLERANCE
