@@ -73,7 +73,14 @@ from swarmpc.model.footprint import (
     rectangle_polytope_distance,
 )
 from swarmpc.solvers.guesses import inputs_from_states
-from swarmpc.solvers.qp_local import OSQPBackend, QPAnswer, QPLocalOptions, TripletMatrix, speed_polytope
+from swarmpc.solvers.qp_local import (
+    IndexCounter,
+    OSQPBackend,
+    QPAnswer,
+    QPLocalOptions,
+    TripletMatrix,
+    speed_polytope,
+)
 
 __all__ = ["MIN_TRUST", "PLAN_TOL_FLOOR", "TRUST_RADIUS", "FootprintLocalQP", "corner_offsets"]
 
@@ -150,19 +157,6 @@ class _Loop:
     answered: bool = False
 
 
-class _Counter:
-    """Consecutive indices in blocks of any shape (row-major)."""
-
-    def __init__(self) -> None:
-        self.size = 0
-
-    def take(self, *shape: int) -> np.ndarray:
-        count = int(np.prod(shape))
-        block = np.arange(self.size, self.size + count).reshape(shape)
-        self.size += count
-        return block
-
-
 @dataclass(frozen=True)
 class _Slot:
     """One neighbour slot: the copy's kind, the pair's first constrained step and row count."""
@@ -180,7 +174,7 @@ class _Layout:
     def __init__(self, own: FootprintAgent, slots: Sequence[_Slot]) -> None:
         s = own.settings
         N, n, m = s.horizon, s.model.state_dim, s.model.input_dim
-        counter = _Counter()
+        counter = IndexCounter()
         self.X = counter.take(N + 1, n).T
         self.U = counter.take(N, m).T
         self.pose = counter.take(N, block_rows(own)).T
@@ -239,28 +233,56 @@ class _Dynamics:
         return A, B, c, J, p
 
 
-class FootprintLocalQP:
-    """One agent's local step against copies of neighbours of given kinds, as a sequence of QPs
-    (module docstring); ``owner_weight`` as in
-    :func:`~swarmpc.formulation.footprint_local.build_footprint_local`. Built once per agent and
-    sequence of neighbour kinds; OSQP is set up on the first call and updated in place after."""
+@dataclass
+class _Geometry:
+    """What both the rounds' QP and the merit need of the agent: its footprint, kind and slots,
+    the owner weight and the price of missing separation."""
 
-    def __init__(
-        self, own: FootprintAgent, kinds: Sequence[NeighbourKind], options: QPLocalOptions, owner_weight: float = 1.0,
-    ) -> None:
-        self.own, self.options, self.owner_weight = own, options, owner_weight
-        s = own.settings
-        self.slots = [_Slot(k.oriented, min(s.first_constrained_step, k.first_step),
-                            s.horizon + 1 - min(s.first_constrained_step, k.first_step)) for k in kinds]
-        if any(slot.first < 1 for slot in self.slots) or s.first_constrained_step < 1:
-            raise ValueError("the footprint QP constrains poses from step 1 on")
+    own: FootprintAgent
+    slots: list[_Slot]
+    owner_weight: float
+    oriented: bool
+
+    def poses(self, X: np.ndarray) -> np.ndarray:
+        """Footprint poses (K, 3) of states (K, n) (:meth:`FootprintAgent.poses`, without its
+        model check)."""
+        model: Any = self.own.settings.model
+        if self.oriented:
+            return np.asarray(model.pose(X))
+        position = model.position(np.asarray(X, float))
+        return np.concatenate([position, np.zeros((len(position), 1))], axis=1)
+
+    def copy_size(self, params: dict[str, np.ndarray], slot: int) -> np.ndarray:
+        """The footprint size of slot ``slot``'s neighbour from its parameter ``S{slot}``
+        (:func:`~swarmpc.formulation.footprint_local.slot_size`: the pair's box half-size between
+        point agents)."""
+        size = np.asarray(params[f"S{slot}"], float).ravel()
+        if self.oriented or self.slots[slot].oriented:
+            return size
+        return 2.0 * (size - self.own.body)
+
+    @property
+    def price(self) -> float:
+        """The price per metre of separation a plan lacks: the soft form's kappa, or
+        :data:`HARD_PENALTY` (an exact penalty: the rounds start from plans that overlap)."""
+        s = self.own.settings
+        return s.kappa if s.collision == "soft" else HARD_PENALTY
+
+
+class _RoundQP:
+    """The QP of one round (module docstring, items 1-3): its sparsity pattern, built once; per
+    round the values of an expansion about a plan, and OSQP set up on the first round and updated
+    in place after. It keeps the normals it held (:func:`_steady`)."""
+
+    def __init__(self, geo: _Geometry, options: QPLocalOptions) -> None:
+        own, s = geo.own, geo.own.settings
+        self.geo, self.own, self.slots, self.oriented, self.options = geo, own, geo.slots, geo.oriented, options
         self.layout = _Layout(own, self.slots)
         self.dynamics = _Dynamics(own)
         self.own_corners = corner_offsets(own.size)
         self.obstacle_vertices = [polygon_vertices(G, g) for G, g in s.obstacles]
-        self.oriented = own.oriented  # read once: the protocol check behind it is slow
-        self._normals: list[np.ndarray] | None = None
-        self._obstacle_normals: list[np.ndarray] = []
+        self.normals: list[np.ndarray] | None = None
+        self.obstacle_normals: list[np.ndarray] = []
         """The last round's normals (per slot, per obstacle): held on where still nearly best."""
         self.speed = None if own.oriented or s.speed is None else speed_polytope(2)
         model: Any = s.model
@@ -378,83 +400,7 @@ class FootprintLocalQP:
             self.A.add(self.rows.take(f"obstacle_slack{o}", lay.obstacle_steps), slack, 1.0)
             self.obstacle_slots.append(entries)
 
-    # ---- one call ------------------------------------------------------------------------------
-    def solve(
-        self, params: dict[str, np.ndarray], plan: np.ndarray, inputs: np.ndarray | None,
-        copies: Sequence[np.ndarray], pinned: bool = False,
-    ) -> NLPSolution:
-        """The local step from the plan ``plan`` (N+1, n) (and its ``inputs`` (N, m), else guessed
-        from the plan) with copies ``copies`` (r_s, N) per slot, for the parameters of
-        :func:`~swarmpc.formulation.footprint_local.build_footprint_local`. ``pinned``: the copies
-        are held at ``copies`` (a repair) and the answer is checked against them. Returns the
-        NLP's blocks (``X``, ``U``, ``C{s}``, soft slacks); ``success`` False when no QP had an
-        answer or a hard-form plan failed the exact check."""
-        started = time.perf_counter()
-        s = self.own.settings
-        lower, upper = s.model.input_bounds(s.accel, s.speed)
-        U = np.clip(inputs_from_states(plan, s) if inputs is None else np.asarray(inputs, float), lower, upper)
-        current = self._plan(params, U, [np.asarray(c, float).copy() for c in copies])
-        loop, tol = _Loop(), max(self.options.plan_tol, PLAN_TOL_FLOOR)
-        given = _Plan(np.asarray(plan, float), U, current.C)
-        if self._overlaps(given, params) or self._overlaps(current, params):  # not the rounds' choice
-            loop.status, loop.rounds = "start overlaps", self.options.max_rounds
-        while loop.rounds < self.options.max_rounds and loop.tau >= MIN_TRUST:
-            loop.rounds += 1
-            answer = self._solve_round(params, current, loop.tau, pinned)
-            loop.status, loop.iterations = answer.status, loop.iterations + answer.iterations
-            if not (answer.solved or answer.status.startswith("maximum iterations")):
-                break
-            loop.answered = True
-            candidate = self._plan(params, answer.x[self.layout.U].T,
-                                   current.C if pinned else [answer.x[c] for c in self.layout.copies])
-            moved = current.distance(candidate)
-            if candidate.merit > current.merit - MERIT_DECREASE * (1.0 + abs(current.merit)):
-                if moved < tol:  # settled: the QP's answer is the plan it started from
-                    break
-                loop.tau = SHRINK * self._step_size(current, candidate)  # misled: the next round stays closer
-                continue
-            if self._step_size(current, candidate) > 0.5 * loop.tau:  # the trust region bound: widen it
-                loop.tau = min(TRUST_RADIUS, 2.0 * loop.tau)
-            current = candidate
-            if moved < tol:
-                break
-        blocks = self._blocks(current, params)
-        success = loop.answered and (s.collision == "soft" or self._clear(current, params, pinned))
-        return NLPSolution(
-            x=blocks, x_vec=np.zeros(0), lam_x=np.zeros(0), lam_g=np.zeros(0),
-            cost=self.objective(current, blocks, params), success=success, status=f"qp: {loop.status}",
-            iterations=loop.iterations, solve_time=time.perf_counter() - started,
-        )
-
-    def _plan(self, params: dict[str, np.ndarray], U: np.ndarray, C: list[np.ndarray]) -> _Plan:
-        """The plan of inputs U (clipped to their box) rolled out from x0, with copies C, and its merit."""
-        s = self.own.settings
-        lower, upper = s.model.input_bounds(s.accel, s.speed)
-        U = np.clip(np.asarray(U, float), lower, upper)
-        plan = _Plan(self.dynamics.rollout(np.asarray(params["x0"], float).ravel(), U), U, C)
-        plan.merit = self.merit(plan, params)
-        return plan
-
-    def _step_size(self, old: _Plan, new: _Plan) -> float:
-        """How far a round moved, in units of the trust radius: the largest heading change (the
-        agent's and its car copies') or input change (as the share of TRUST_RADIUS its range's half
-        is), whichever is larger."""
-        s = self.own.settings
-        low, high = s.model.input_bounds(s.accel, s.speed)
-        inputs = float(np.max(np.abs(new.U - old.U) / (0.5 * (high - low)))) * TRUST_RADIUS
-        return max(inputs, self._turn(old, new))
-
-    def _turn(self, old: _Plan, new: _Plan) -> float:
-        """The largest heading change between two plans: the agent's (a car) and its car copies'."""
-        turns = [0.0]
-        if self.oriented:
-            row = self.heading_row
-            turns.append(float(np.max(np.abs(new.X[:, row] - old.X[:, row]))))
-        turns += [float(np.max(np.abs(b[2] - a[2])))
-                  for slot, a, b in zip(self.slots, old.C, new.C, strict=True) if slot.oriented]
-        return max(turns)
-
-    def _solve_round(self, params: dict[str, np.ndarray], plan: _Plan, tau: float, pinned: bool) -> QPAnswer:
+    def solve(self, params: dict[str, np.ndarray], plan: _Plan, tau: float, pinned: bool) -> QPAnswer:
         """One QP about ``plan`` with trust radius ``tau``."""
         lay, X, U, C = self.layout, plan.X, plan.U, plan.C
         values = self.A_base.copy()
@@ -468,7 +414,7 @@ class FootprintLocalQP:
         rho = float(np.asarray(params["rho"]).ravel()[0])
         P_values = self.P_base.copy()
         P_values[self.rho_slots] = rho
-        P_values[self.own_rho_slots] = rho * self.owner_weight
+        P_values[self.own_rho_slots] = rho * self.geo.owner_weight
         A_data, P_data = self.A.data(values), self.P.data(P_values)
         if not self._ready:
             self._backend.setup(_csc(self.P_matrix, P_data), q, _csc(self.A_matrix, A_data), lower, upper)
@@ -524,15 +470,6 @@ class FootprintLocalQP:
             elif self.slots[slot].oriented:
                 lower[block[2]], upper[block[2]] = copy[2] - tau, copy[2] + tau
 
-    def _copy_size(self, params: dict[str, np.ndarray], slot: int) -> np.ndarray:
-        """The footprint size of slot ``slot``'s neighbour from its parameter ``S{slot}``
-        (:func:`~swarmpc.formulation.footprint_local.slot_size`: the pair's box half-size between
-        point agents)."""
-        size = np.asarray(params[f"S{slot}"], float).ravel()
-        if self.oriented or self.slots[slot].oriented:
-            return size
-        return 2.0 * (size - self.own.body)
-
     @staticmethod
     def _corner_terms(
         pose: np.ndarray, offsets: np.ndarray, normal: np.ndarray, oriented: bool,
@@ -551,17 +488,17 @@ class FootprintLocalQP:
         params: dict[str, np.ndarray],
     ) -> None:
         d_min, margin = self.own.settings.d_min, self.options.margin
-        poses = self._poses(X[1:])
-        previous, self._normals = self._normals, []
+        poses = self.geo.poses(X[1:])
+        previous, self.normals = self.normals, []
         for slot, (info, (own, copy)) in enumerate(zip(self.slots, self.pair_slots, strict=True)):
-            size = self._copy_size(params, slot)
+            size = self.geo.copy_size(params, slot)
             own_pose = poses[info.first - 1:]
             copy_pose = _as_pose(C[slot][:, info.first - 1:])
             own_vertices, copy_vertices = _vertices(own_pose, self.own.size), _vertices(copy_pose, size)
             normal = best_direction(own_vertices, copy_vertices)
             if previous is not None:
                 normal = _steady(previous[slot], normal, own_vertices, copy_vertices)
-            self._normals.append(normal)
+            self.normals.append(normal)
             slope, constant = self._corner_terms(own_pose, self.own_corners, normal, self.oriented)
             _set(values, own, -normal, -slope)
             lower[own[0]] = d_min + constant + margin
@@ -572,14 +509,14 @@ class FootprintLocalQP:
 
     def _obstacle_values(self, values: np.ndarray, lower: np.ndarray, X: np.ndarray) -> None:
         s, margin = self.own.settings, self.options.margin
-        pose = self._poses(X[s.first_constrained_step:])
-        previous, self._obstacle_normals = self._obstacle_normals, []
+        pose = self.geo.poses(X[s.first_constrained_step:])
+        previous, self.obstacle_normals = self.obstacle_normals, []
         for o, (vertices, entries) in enumerate(zip(self.obstacle_vertices, self.obstacle_slots, strict=True)):
             own_vertices = _vertices(pose, self.own.size)
             normal = best_direction(own_vertices, vertices)
             if o < len(previous):
                 normal = _steady(previous[o], normal, own_vertices, vertices)
-            self._obstacle_normals.append(normal)
+            self.obstacle_normals.append(normal)
             support = np.min(normal @ vertices.T, axis=1)
             slope, constant = self._corner_terms(pose, self.own_corners, normal, self.oriented)
             _set(values, entries, -normal, -slope)
@@ -595,19 +532,107 @@ class FootprintLocalQP:
         q = np.zeros(lay.size)
         q[lay.X[:, :-1]] = (-2.0 * s.Q @ goal)[:, None]
         q[lay.X[:, -1]] = -2.0 * s.Qf @ goal
-        q[lay.pose] = np.asarray(params["Y"], float) - rho * self.owner_weight * np.asarray(params["Z"], float)
+        q[lay.pose] = np.asarray(params["Y"], float) - rho * self.geo.owner_weight * np.asarray(params["Z"], float)
         for slot, index in enumerate(lay.copies):
             q[index] = np.asarray(params[f"Y{slot}"], float) - rho * np.asarray(params[f"Z{slot}"], float)
         for slack in [*lay.pair_slack, *lay.obstacle_slack]:
-            q[slack] = self.price
+            q[slack] = self.geo.price
         return q
 
-    @property
-    def price(self) -> float:
-        """The price per metre of separation a plan lacks: the soft form's kappa, or
-        :data:`HARD_PENALTY` (an exact penalty: the rounds start from plans that overlap)."""
+
+class FootprintLocalQP:
+    """One agent's local step against copies of neighbours of given kinds, as a sequence of QPs
+    (module docstring): the rounds, and the merit and exact checks that judge their plans;
+    ``owner_weight`` as in :func:`~swarmpc.formulation.footprint_local.build_footprint_local`.
+    Built once per agent and sequence of neighbour kinds."""
+
+    def __init__(
+        self, own: FootprintAgent, kinds: Sequence[NeighbourKind], options: QPLocalOptions, owner_weight: float = 1.0,
+    ) -> None:
+        s = own.settings
+        slots = [_Slot(k.oriented, min(s.first_constrained_step, k.first_step),
+                       s.horizon + 1 - min(s.first_constrained_step, k.first_step)) for k in kinds]
+        if any(slot.first < 1 for slot in slots) or s.first_constrained_step < 1:
+            raise ValueError("the footprint QP constrains poses from step 1 on")
+        self.geo = _Geometry(own, slots, owner_weight, own.oriented)  # read once: the protocol check is slow
+        self.own, self.slots, self.oriented, self.options = own, slots, self.geo.oriented, options
+        self.round = _RoundQP(self.geo, options)
+
+    # ---- one call ------------------------------------------------------------------------------
+    def solve(
+        self, params: dict[str, np.ndarray], plan: np.ndarray, inputs: np.ndarray | None,
+        copies: Sequence[np.ndarray], pinned: bool = False,
+    ) -> NLPSolution:
+        """The local step from the plan ``plan`` (N+1, n) (and its ``inputs`` (N, m), else guessed
+        from the plan) with copies ``copies`` (r_s, N) per slot, for the parameters of
+        :func:`~swarmpc.formulation.footprint_local.build_footprint_local`. ``pinned``: the copies
+        are held at ``copies`` (a repair) and the answer is checked against them. Returns the
+        NLP's blocks (``X``, ``U``, ``C{s}``, soft slacks); ``success`` False when no QP had an
+        answer or a hard-form plan failed the exact check."""
+        started = time.perf_counter()
         s = self.own.settings
-        return s.kappa if s.collision == "soft" else HARD_PENALTY
+        lower, upper = s.model.input_bounds(s.accel, s.speed)
+        U = np.clip(inputs_from_states(plan, s) if inputs is None else np.asarray(inputs, float), lower, upper)
+        current = self._plan(params, U, [np.asarray(c, float).copy() for c in copies])
+        loop, tol = _Loop(), max(self.options.plan_tol, PLAN_TOL_FLOOR)
+        given = _Plan(np.asarray(plan, float), U, current.C)
+        if self._overlaps(given, params) or self._overlaps(current, params):  # not the rounds' choice
+            loop.status, loop.rounds = "start overlaps", self.options.max_rounds
+        while loop.rounds < self.options.max_rounds and loop.tau >= MIN_TRUST:
+            loop.rounds += 1
+            answer = self.round.solve(params, current, loop.tau, pinned)
+            loop.status, loop.iterations = answer.status, loop.iterations + answer.iterations
+            if not (answer.solved or answer.status.startswith("maximum iterations")):
+                break
+            loop.answered = True
+            candidate = self._plan(params, answer.x[self.round.layout.U].T,
+                                   current.C if pinned else [answer.x[c] for c in self.round.layout.copies])
+            moved = current.distance(candidate)
+            if candidate.merit > current.merit - MERIT_DECREASE * (1.0 + abs(current.merit)):
+                if moved < tol:  # settled: the QP's answer is the plan it started from
+                    break
+                loop.tau = SHRINK * self._step_size(current, candidate)  # misled: the next round stays closer
+                continue
+            if self._step_size(current, candidate) > 0.5 * loop.tau:  # the trust region bound: widen it
+                loop.tau = min(TRUST_RADIUS, 2.0 * loop.tau)
+            current = candidate
+            if moved < tol:
+                break
+        blocks = self._blocks(current, params)
+        success = loop.answered and (s.collision == "soft" or self._clear(current, params, pinned))
+        return NLPSolution(
+            x=blocks, x_vec=np.zeros(0), lam_x=np.zeros(0), lam_g=np.zeros(0),
+            cost=self.objective(current, blocks, params), success=success, status=f"qp: {loop.status}",
+            iterations=loop.iterations, solve_time=time.perf_counter() - started,
+        )
+
+    def _plan(self, params: dict[str, np.ndarray], U: np.ndarray, C: list[np.ndarray]) -> _Plan:
+        """The plan of inputs U (clipped to their box) rolled out from x0, with copies C, and its merit."""
+        s = self.own.settings
+        lower, upper = s.model.input_bounds(s.accel, s.speed)
+        U = np.clip(np.asarray(U, float), lower, upper)
+        plan = _Plan(self.round.dynamics.rollout(np.asarray(params["x0"], float).ravel(), U), U, C)
+        plan.merit = self.merit(plan, params)
+        return plan
+
+    def _step_size(self, old: _Plan, new: _Plan) -> float:
+        """How far a round moved, in units of the trust radius: the largest heading change (the
+        agent's and its car copies') or input change (as the share of TRUST_RADIUS its range's half
+        is), whichever is larger."""
+        s = self.own.settings
+        low, high = s.model.input_bounds(s.accel, s.speed)
+        inputs = float(np.max(np.abs(new.U - old.U) / (0.5 * (high - low)))) * TRUST_RADIUS
+        return max(inputs, self._turn(old, new))
+
+    def _turn(self, old: _Plan, new: _Plan) -> float:
+        """The largest heading change between two plans: the agent's (a car) and its car copies'."""
+        turns = [0.0]
+        if self.oriented:
+            row = self.round.heading_row
+            turns.append(float(np.max(np.abs(new.X[:, row] - old.X[:, row]))))
+        turns += [float(np.max(np.abs(b[2] - a[2])))
+                  for slot, a, b in zip(self.slots, old.C, new.C, strict=True) if slot.oriented]
+        return max(turns)
 
     # ---- the answer ----------------------------------------------------------------------------
     def _gaps(
@@ -618,10 +643,10 @@ class FootprintLocalQP:
         ``pairs``), per obstacle (K_o,) to the obstacle. A pair's step that the last round's normal
         already shows to be ``below`` apart or more is left at that lower bound (:meth:`_bound`)."""
         s = self.own.settings
-        poses = self._poses(X)
+        poses = self.geo.poses(X)
         gaps = []
         for slot, info in enumerate(self.slots if pairs else []):
-            own, size = poses[info.first:], self._copy_size(params, slot)
+            own, size = poses[info.first:], self.geo.copy_size(params, slot)
             other = _as_pose(C[slot][:, info.first - 1:])
             gap, near = self._bound(slot, own, other, size), np.ones(len(own), bool)
             if gap is not None:
@@ -659,23 +684,14 @@ class FootprintLocalQP:
         pairs, obstacles = self._gaps(plan.X, plan.C, params, below=self.own.settings.d_min)
         d_min = self.own.settings.d_min
         short = sum(float(np.sum(np.maximum(0.0, d_min - gap))) for gap in [*pairs, *obstacles])
-        return self.objective(plan, {}, params) + self.price * (short + self._outside(plan.X))
+        return self.objective(plan, {}, params) + self.geo.price * (short + self._outside(plan.X))
 
     def _bound(self, slot: int, own: np.ndarray, other: np.ndarray, size: np.ndarray) -> np.ndarray | None:
         """A lower bound (K_s,) on the distance of a slot's footprints at each step: their gap
         along the last round's normals (weak duality); None before the first round."""
-        if self._normals is None:
+        if self.round.normals is None:
             return None
-        return _gap_along(self._normals[slot], _vertices(own, self.own.size), _vertices(other, size))
-
-    def _poses(self, X: np.ndarray) -> np.ndarray:
-        """Footprint poses (K, 3) of states (K, n) (:meth:`FootprintAgent.poses`, without its
-        model check)."""
-        model: Any = self.own.settings.model
-        if self.oriented:
-            return np.asarray(model.pose(X))
-        position = model.position(np.asarray(X, float))
-        return np.concatenate([position, np.zeros((len(position), 1))], axis=1)
+        return _gap_along(self.round.normals[slot], _vertices(own, self.own.size), _vertices(other, size))
 
     def _blocks(self, plan: _Plan, params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The NLP's named blocks of an answer; in the soft form the slacks max(0, d_min - gap)
@@ -701,7 +717,7 @@ class FootprintLocalQP:
         err = plan.X - goal
         cost = float(np.einsum("ki,ij,kj->", err[:-1], s.Q, err[:-1]) + np.einsum("ki,ij,kj->", plan.U, s.R, plan.U)
                      + err[-1] @ s.Qf @ err[-1])
-        terms = [(consensus_block(self.own, plan.X), "", rho * self.owner_weight)]
+        terms = [(consensus_block(self.own, plan.X), "", rho * self.geo.owner_weight)]
         terms += [(c, str(slot), rho) for slot, c in enumerate(plan.C)]
         for value, tag, penalty in terms:
             z, y = np.asarray(params[f"Z{tag}"], float), np.asarray(params[f"Y{tag}"], float)

@@ -189,7 +189,7 @@ def _sphere_directions(dim: int, count: int | None) -> np.ndarray:
     return np.column_stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)])
 
 
-class _Counter:
+class IndexCounter:
     """Hands out consecutive indices in blocks of any shape (row-major over the given shape)."""
 
     def __init__(self) -> None:
@@ -209,7 +209,7 @@ class VariableLayout:
 
     def __init__(self, s: OCPSettings, shape: LocalShape) -> None:
         d, N, K, n = s.dim, s.horizon, s.num_constrained, shape.copies
-        counter = _Counter()
+        counter = IndexCounter()
         self.X = counter.take(N + 1, s.model.state_dim).T
         self.U = counter.take(N, s.model.input_dim).T
         self.copy_start = counter.size
@@ -425,7 +425,7 @@ class LocalQPProblem:
         self.rows: dict[str, np.ndarray] = {}
         self._lower: list[np.ndarray] = []
         self._upper: list[np.ndarray] = []
-        self._row_counter = _Counter()
+        self._row_counter = IndexCounter()
         A = TripletMatrix(self.layout.size)
         self._dynamics_rows(A)
         self._limit_rows(A)
