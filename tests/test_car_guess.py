@@ -113,6 +113,26 @@ def test_closed_wall_gives_none_within_the_time_limit() -> None:
     assert time.perf_counter() - t0 < 5.0
 
 
+def test_a_search_ends_by_its_iterations_not_the_clock() -> None:
+    # Two attempts of 50 iterations round a closed wall take a fraction of a second, not the minute.
+    t0 = time.perf_counter()
+    assert car_path(CAR, START, GOAL, CLOSED_WALL, BOUNDS, D_MIN, seed=0, time_limit=60.0, iterations=50) is None
+    assert time.perf_counter() - t0 < 10.0
+
+
+def test_the_iterations_decide_which_attempt_finds_the_path(gap_path: np.ndarray) -> None:
+    # The forwards-only search through the gap needs about 100 iterations: with 40 it gives up,
+    # and the path is the Reeds-Shepp attempt's, whatever the time limit.
+    short = [car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=t, iterations=40)
+             for t in (2.0, 30.0)]
+    reeds_shepp = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=2.0,
+                           prefer_forward=False, iterations=40)
+    assert short[0] is not None and reeds_shepp is not None
+    np.testing.assert_array_equal(short[0], short[1])
+    np.testing.assert_array_equal(short[0], reeds_shepp)
+    assert short[0].shape != gap_path.shape or not np.array_equal(short[0], gap_path)
+
+
 def test_invalid_endpoints_give_none_without_planning() -> None:
     near_wall = np.array([3.35, 1.0, 0.0])  # the front bumper (0.6 ahead of the axle) within d_min
     assert clearance(CAR, near_wall[None], WALL_WITH_GAP)[0] < D_MIN

@@ -12,7 +12,7 @@ from swarmpc.model.car import KinematicCar
 from swarmpc.model.geometry import inflate_polytope
 from swarmpc.simulation.disturbance import planner_bodies
 from swarmpc.solvers.base import SHIFT_TOLERANCE, PlanStep
-from swarmpc.solvers.car_guess import car_guess, car_path
+from swarmpc.solvers.car_guess import PLANNER_ITERATIONS, car_guess, car_path
 from swarmpc.solvers.footprint_central import straight_guess
 from swarmpc.solvers.guesses import nominal_speed
 from swarmpc.solvers.registry import agent_settings
@@ -21,9 +21,9 @@ from swarmpc.solvers.rrt import RRTGuess, straight_line_guess
 CAR_BUDGET_FACTOR = 20.0
 """A car's SE(2) plan may take this many times ``solver.rrt_time_budget`` (a point's budget): its
 search space has the heading as a third dimension and its motions follow the turning limit."""
-CAR_RETRY_FACTOR = 4.0
-"""A car plan that found nothing is retried once with this many times its time limit (a loaded
-machine can run a plan that is quick on an idle core out of time)."""
+CAR_RETRY_FACTOR = 4
+"""A car plan that found nothing is retried once with this many times its planner iterations and
+time limit (a narrow passage a short search misses)."""
 CAR_CLEARANCE = 0.9
 """A car's path keeps this fraction of d_min from the obstacles, so that a pose the hard form
 keeps exactly d_min away is still a valid start."""
@@ -36,7 +36,7 @@ class CarRoutes:
     A path is planned around the scenario's static obstacles with the footprint's exact clearance
     (:data:`CAR_CLEARANCE` d_min), the whole footprint inside the workspace, and stored with its
     goal pose; it is planned again only when the car's goal changes. A plan that finds nothing is
-    retried once with :data:`CAR_RETRY_FACTOR` times the time limit; when the retry finds nothing
+    retried once with :data:`CAR_RETRY_FACTOR` times the iterations and time limit; when the retry finds nothing
     either (a goal walled in, which a sampling planner cannot tell from an unlucky search, or a
     start or goal pose the check refuses), the failure is stored as well, so the car keeps the
     straight-line guess until its goal changes instead of searching in vain at every step. The
@@ -74,14 +74,15 @@ class CarRoutes:
         return dict(self._stats)
 
     def _plan(self, agent: int, model: KinematicCar, pose: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
-        """A fresh path from ``pose`` to ``goal`` (retried once with a longer time limit), or None."""
+        """A fresh path from ``pose`` to ``goal`` (retried once with a longer search), or None."""
         count = self._plans.get(agent, 0)
         self._plans[agent] = count + 1
         entropy = [self.seed % 2**64, agent, count]
         seed = int(np.random.SeedSequence(entropy).generate_state(1, np.uint32)[0])
         path = None
-        for limit in (self.time_limit, CAR_RETRY_FACTOR * self.time_limit):
-            path = car_path(model, pose, goal, self.obstacles, self.bounds, self.clearance, seed, limit)
+        for factor in (1, CAR_RETRY_FACTOR):
+            path = car_path(model, pose, goal, self.obstacles, self.bounds, self.clearance, seed,
+                            factor * self.time_limit, iterations=factor * PLANNER_ITERATIONS)
             if path is not None:
                 break
         self._stats["fresh"] += 1

@@ -6,7 +6,7 @@ the poses ``(x, y, theta)`` of the car's reference point (the centre of the rear
 has curvature ``tan(delta) / wheelbase``), in OMPL's Reeds-Shepp state space: every motion between
 two poses is a shortest path made of arcs of the car's minimum turning radius
 ``1 / KinematicCar.max_curvature`` and straight lines, forwards or in reverse. By default it first
-tries the Dubins space (the same curves, forwards only) with half the time limit, since the
+tries the Dubins space (the same curves, forwards only), since the
 Reeds-Shepp paths reverse freely and a car reverses slowly; a car that may not reverse
 (``max_reverse_speed == 0``) is only ever planned in the Dubins space.
 :func:`car_guess` then drives along that path: it accelerates, cruises and brakes along the arc
@@ -43,20 +43,22 @@ tree's motions in the direction they are driven, so it is correct in the asymmet
 as well. Optimality is not the point: the guess only has to put the car in the right homotopy
 class, and the MPC optimises the trajectory; the path simplifier removes the detours. A goal
 reachable only along a short arc (a pose close to the workspace edge or an obstacle, facing it)
-is a narrow target for the forwards-only search, which then spends its share of the time limit
+is a narrow target for the forwards-only search, which then spends its iterations
 in vain before the Reeds-Shepp attempt finds the manoeuvre with reversing.
 
 Reproducibility
 ---------------
 As in :mod:`swarmpc.solvers.rrt`: every attempt reseeds OMPL's process-wide generator and builds
-fresh OMPL objects, the simplifier runs a bounded number of deterministic passes, and OMPL's log
-level is lowered for the duration of a call. The seed and the log level are global to the
-process, so concurrent planning from several threads is not reproducible.
+fresh OMPL objects, and the simplifier runs a bounded number of deterministic passes. An attempt
+ends after a number of planner iterations; the time limit is only a guard, since which attempt
+finds the path must not depend on the machine's load. OMPL's log level is lowered for the
+duration of a call. The seed and the log level are global to the process, so concurrent planning
+from several threads is not reproducible.
 
 Failure
 -------
 :func:`car_path` returns ``None`` (it never raises for the geometry) when no attempt found a path
-within its share of the time limit, which includes a goal that no path reaches (a closed wall: a sampling planner
+within its iterations or the time limit, which includes a goal that no path reaches (a closed wall: a sampling planner
 cannot tell it from an unlucky search), or when the start or goal pose is itself invalid. The
 caller falls back to :func:`car_straight_guess` (:func:`car_guess` does so itself when handed
 ``None``). Malformed arguments (shapes, non-finite numbers, a non-planar model) raise ValueError.
@@ -66,6 +68,7 @@ from __future__ import annotations
 
 import math
 import operator
+import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -77,7 +80,12 @@ from swarmpc.model.car import KinematicCar
 from swarmpc.model.footprint import polygon_distance, polygon_vertices, rotation
 from swarmpc.solvers.rrt import ompl_seed, simplify_path
 
-__all__ = ["car_guess", "car_path", "car_straight_guess"]
+__all__ = ["PLANNER_ITERATIONS", "car_guess", "car_path", "car_straight_guess"]
+
+PLANNER_ITERATIONS = 400
+"""Default RRT-Connect iterations per planning attempt of :func:`car_path`: the guesses of the
+built-ins and the tests' scenes are found within 150 when a path exists (the forwards-only
+attempt round the parking bays finds none, and the Reeds-Shepp attempt finds one within 50)."""
 
 Obstacles = Sequence[tuple[np.ndarray, np.ndarray]]
 
@@ -206,8 +214,23 @@ def _space_information(validity: _FootprintValidity, reverse: bool) -> ob.SpaceI
     return si
 
 
-def _solve(si: ob.SpaceInformation, start: np.ndarray, goal: np.ndarray, time_limit: float) -> list[og.PathGeometric]:
-    """RRT-Connect from ``start`` to ``goal``: [simplified path, raw path], or [] without an exact solution."""
+def _termination(iterations: int, deadline: float) -> ob.PlannerTerminationCondition:
+    """Ends a search after ``iterations`` evaluations (one per planner iteration) or at
+    ``deadline`` (``time.perf_counter()``), whichever comes first."""
+    count = [0]
+
+    def spent() -> bool:
+        count[0] += 1
+        return count[0] > iterations or time.perf_counter() >= deadline
+
+    return ob.PlannerTerminationCondition(spent)
+
+
+def _solve(
+    si: ob.SpaceInformation, start: np.ndarray, goal: np.ndarray, iterations: int, deadline: float,
+) -> list[og.PathGeometric]:
+    """RRT-Connect from ``start`` to ``goal`` within ``iterations`` planner iterations and before
+    ``deadline``: [simplified path, raw path], or [] without an exact solution."""
     setup = og.SimpleSetup(si)
     # si.allocState() states are owned by Python; space.allocState() ones leak.
     s_start, s_goal = si.allocState(), si.allocState()
@@ -216,7 +239,7 @@ def _solve(si: ob.SpaceInformation, start: np.ndarray, goal: np.ndarray, time_li
         state.setYaw((float(pose[2]) + math.pi) % (2.0 * math.pi) - math.pi)  # SO(2) bounds: [-pi, pi)
     setup.setStartAndGoalStates(s_start, s_goal)
     setup.setPlanner(og.RRTConnect(si))
-    setup.solve(time_limit)
+    setup.solve(_termination(iterations, deadline))
     if not setup.haveExactSolutionPath():
         return []
     path = og.PathGeometric(setup.getSolutionPath())
@@ -294,6 +317,7 @@ def car_path(
     seed: int,
     time_limit: float = 1.0,
     prefer_forward: bool = True,
+    iterations: int = PLANNER_ITERATIONS,
 ) -> np.ndarray | None:
     """Plan a collision-free path of the car's reference pose with OMPL, within its turning limit.
 
@@ -314,8 +338,13 @@ def car_path(
     seed : int
         Seed of OMPL's generators: the same seed gives the same path.
     time_limit : float
-        Planner time limit in seconds (> 0; setup, simplification and sampling come on top),
-        shared equally by the attempts (see ``prefer_forward``).
+        Planner time limit in seconds (> 0; setup, simplification and sampling come on top) for
+        all attempts together (see ``prefer_forward``): a guard for a slow or loaded machine.
+    iterations : int
+        Planner iterations per attempt (> 0). An attempt ends after them or at the time limit,
+        whichever comes first; only a search that the iterations end is reproducible, so the time
+        limit should leave room for them (about 1 ms an iteration round the parking built-in's
+        dividers on this project's reference machine).
     prefer_forward : bool
         For a car that may reverse, first plan forwards only (Dubins curves), and only when no
         such path is found plan with reversing (Reeds-Shepp curves). A Reeds-Shepp connection
@@ -331,7 +360,7 @@ def car_path(
         wrapped): the first row is exactly ``start_pose``, the last is ``goal_pose`` up to a
         multiple of 2 pi in the heading. Between consecutive rows the reference point follows
         arcs of curvature at most ``model.max_curvature`` and straight lines. None when no path
-        was found within ``time_limit`` (a closed wall included) or when ``start_pose`` or
+        was found within ``iterations`` and ``time_limit`` (a closed wall included) or when ``start_pose`` or
         ``goal_pose`` is invalid; nothing raises then.
     """
     validity = _FootprintValidity(model, bounds, obstacles, d_min)
@@ -340,6 +369,8 @@ def car_path(
     time_limit = float(time_limit)
     if not time_limit > 0:
         raise ValueError("time_limit must be > 0")
+    if not (isinstance(iterations, int) and iterations > 0):
+        raise ValueError("iterations must be an int > 0")
     if not (validity.pose_valid(*start) and validity.pose_valid(*goal)):
         return None
     if np.linalg.norm(goal[:2] - start[:2]) <= _SAME_POSE and math.remainder(goal[2] - start[2], 2 * math.pi) == 0:
@@ -348,9 +379,10 @@ def car_path(
     attempts = [False, True] if prefer_forward and model.max_reverse_speed > 0 else [model.max_reverse_speed > 0]
     previous_level = ou.getLogLevel()
     ou.setLogLevel(ou.LOG_NONE)
+    deadline = time.perf_counter() + time_limit
     try:
         for reverse in attempts:
-            path = _plan(validity, start, goal, seed, time_limit / len(attempts), reverse)
+            path = _plan(validity, start, goal, seed, iterations, deadline, reverse)
             if path is not None:
                 return path
     finally:
@@ -359,7 +391,8 @@ def car_path(
 
 
 def _plan(
-    validity: _FootprintValidity, start: np.ndarray, goal: np.ndarray, seed: int, time_limit: float, reverse: bool
+    validity: _FootprintValidity, start: np.ndarray, goal: np.ndarray, seed: int, iterations: int, deadline: float,
+    reverse: bool,
 ) -> np.ndarray | None:
     """One planning attempt of :func:`car_path`, in the Reeds-Shepp (``reverse``) or Dubins space."""
     # Reseeding after OMPL has created generators reseeds the seed generator (OMPL logs an
@@ -368,7 +401,7 @@ def _plan(
     si = _space_information(validity, reverse)
     # The simplifier's B-spline smoothing repairs states, not motions, and the cusps between
     # checked poses were never checked: hand out the first candidate whose every pose is valid.
-    for path in _solve(si, start, goal, time_limit):
+    for path in _solve(si, start, goal, iterations, deadline):
         poses = _with_headings(_sample(si, path), start, goal)
         if np.all(validity.poses_valid(poses)):
             return poses
