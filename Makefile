@@ -2,6 +2,9 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# The test tiers on every core (pytest-xdist), each test file whole on one worker: a module's
+# fixtures are built once, and the files share no state.
+PARALLEL := -n auto --dist loadfile
 
 .PHONY: run test test-all bench clean
 
@@ -18,8 +21,8 @@ test: $(STAMP)
 	if [ -f scripts/install-browser.sh ]; then bash scripts/install-browser.sh; fi
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
-	$(PY) -m pytest
-	$(PY) -m pytest -m 'loop and not slow'
+	$(PY) -m pytest $(PARALLEL)
+	$(PY) -m pytest $(PARALLEL) -m 'loop and not slow'
 
 test-all: $(STAMP)
 	$(PY) -m pytest -m ""
