@@ -16,7 +16,7 @@ from scipy.optimize import minimize
 from scipy.spatial import ConvexHull
 
 from swarmpc.formulation.ocp import certificate_terms, polytope_certificate_terms
-from swarmpc.model.geometry import box_certificate, box_exterior_distance, point_box_distance
+from swarmpc.model.geometry import box_certificate, box_certificates, box_exterior_distance, point_box_distance
 
 
 def best_certificate(point, G, g, soft):
@@ -107,3 +107,30 @@ def test_batched_exterior_distance_is_the_pointwise_distance_outside(offsets, ha
     batched = box_exterior_distance(offsets.T, half.reshape(-1, 1), axis=0)
     expected = [max(point_box_distance(q, half), 0.0) for q in offsets]
     np.testing.assert_allclose(batched, expected, atol=1e-12)
+
+
+def _box_certificate_reference(offset: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """The certificate of one offset as first written: the normalised outside part of the offset,
+    or the shallowest exit axis inside."""
+    excess = np.abs(offset) - half
+    direction = np.zeros(offset.size)
+    if np.any(excess > 0):
+        direction = np.sign(offset) * np.maximum(excess, 0.0)
+        direction /= np.linalg.norm(direction)
+    else:
+        axis = int(np.argmax(excess))
+        direction[axis] = 1.0 if offset[axis] >= 0 else -1.0
+    return np.concatenate([np.maximum(direction, 0.0), np.maximum(-direction, 0.0)])
+
+
+@settings(max_examples=200, deadline=None)
+@given(dim=st.sampled_from([2, 3]), data=st.data())
+def test_batched_box_certificates_equal_the_rows_one_by_one_bit_for_bit(dim: int, data: st.DataObject) -> None:
+    rows = data.draw(st.integers(1, 12))
+    flat = data.draw(st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=rows * dim, max_size=rows * dim))
+    offsets = np.array(flat).reshape(rows, dim)
+    half = np.array(data.draw(st.lists(st.floats(0.05, 1.0), min_size=dim, max_size=dim)))
+    batch = box_certificates(offsets, half)
+    expected = np.array([_box_certificate_reference(q, half) for q in offsets])
+    assert np.array_equal(batch, expected)
+    assert np.array_equal(box_certificate(offsets[0], half), expected[0])

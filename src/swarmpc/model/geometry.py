@@ -61,17 +61,29 @@ def box_certificate(offset: np.ndarray, half_size: np.ndarray) -> np.ndarray:
     warm-starts the solver's certificates from a guessed trajectory.
     """
     offset = np.asarray(offset, float)
-    dim = offset.size
-    half = np.broadcast_to(np.asarray(half_size, float), offset.shape)
-    excess = np.abs(offset) - half
-    direction = np.zeros(dim)
-    if np.any(excess > 0):
-        direction = np.sign(offset) * np.maximum(excess, 0.0)
-        direction /= np.linalg.norm(direction)
-    else:
-        axis = int(np.argmax(excess))
-        direction[axis] = 1.0 if offset[axis] >= 0 else -1.0
-    return np.concatenate([np.maximum(direction, 0.0), np.maximum(-direction, 0.0)])
+    return box_certificates(offset.reshape(1, -1), np.broadcast_to(np.asarray(half_size, float), offset.shape))[0]
+
+
+def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> np.ndarray:
+    """:func:`box_certificate` of every row of ``offsets`` (K, d) at once: (K, 2d).
+
+    A row outside the box gets the unit direction from the box to it, its length the row's dot
+    product with itself (:func:`numpy.vecdot`, the product :func:`numpy.linalg.norm` takes of one
+    vector, so a batch and its rows one by one agree bit for bit); a row inside gets the
+    shallowest exit axis."""
+    offsets = np.asarray(offsets, float)
+    if offsets.ndim != 2:
+        raise ValueError(f"box_certificates: offsets must be (K, d), got shape {offsets.shape}")
+    half = np.broadcast_to(np.asarray(half_size, float), offsets.shape)
+    excess = np.abs(offsets) - half
+    outside = np.any(excess > 0, axis=1)
+    direction = np.zeros_like(offsets)
+    out = np.sign(offsets[outside]) * np.maximum(excess[outside], 0.0)
+    direction[outside] = out / np.sqrt(np.vecdot(out, out))[:, None]
+    inside = np.flatnonzero(~outside)
+    axis = np.argmax(excess[inside], axis=1)
+    direction[inside, axis] = np.where(offsets[inside, axis] >= 0, 1.0, -1.0)
+    return np.concatenate([np.maximum(direction, 0.0), np.maximum(-direction, 0.0)], axis=1)
 
 
 def polytope_certificate(point: np.ndarray, G: np.ndarray, g: np.ndarray) -> np.ndarray:

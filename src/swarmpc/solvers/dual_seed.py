@@ -21,7 +21,7 @@ import itertools
 import numpy as np
 
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.model.geometry import box_certificate
+from swarmpc.model.geometry import box_certificates
 
 __all__ = [
     "certificate_value",
@@ -120,7 +120,7 @@ def pair_seed(
     """Certificate ``L{tag}`` (2d, K) of guessed offsets p_i - p_j (K, d) against the box of
     half-size delta around the other agent, plus the soft slack ``A{tag}`` (1, K)."""
     half = np.broadcast_to(np.asarray(half_size, float), (offsets.shape[1],))
-    lam = np.array([box_certificate(q, half) for q in offsets]).T
+    lam = box_certificates(offsets, half).T
     blocks = {f"L{tag}": lam}
     if settings.collision == "soft":
         d = offsets.shape[1]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.model.geometry import box_certificate
+from swarmpc.model.geometry import box_certificates
 from swarmpc.solvers.dual_seed import obstacle_seed, pair_seed, polytope_certificate
 
 
@@ -28,7 +28,7 @@ def inputs_from_states(states: np.ndarray, settings: OCPSettings) -> np.ndarray:
 
 def pair_certificates(offsets: np.ndarray, half_size: np.ndarray) -> np.ndarray:
     """Box certificates (2d, K) for offsets (K, d) between two agents."""
-    return np.array([box_certificate(q, half_size) for q in offsets]).T
+    return box_certificates(offsets, half_size).T
 
 
 def obstacle_certificates(positions: np.ndarray, G: np.ndarray, g: np.ndarray) -> np.ndarray:
