@@ -61,7 +61,7 @@ def box_certificate(offset: np.ndarray, half_size: np.ndarray) -> np.ndarray:
     warm-starts the solver's certificates from a guessed trajectory.
     """
     offset = np.asarray(offset, float)
-    return box_certificates(offset.reshape(1, -1), np.broadcast_to(np.asarray(half_size, float), offset.shape))[0]
+    return box_certificates(offset.reshape(1, -1), half_size)[0]
 
 
 def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> np.ndarray:

@@ -36,8 +36,8 @@ class CarRoutes:
     A path is planned around the scenario's static obstacles with the footprint's exact clearance
     (:data:`CAR_CLEARANCE` d_min), the whole footprint inside the workspace, and stored with its
     goal pose; it is planned again only when the car's goal changes. A plan that finds nothing is
-    retried once with :data:`CAR_RETRY_FACTOR` times the iterations and time limit; when the retry finds nothing
-    either (a goal walled in, which a sampling planner cannot tell from an unlucky search, or a
+    retried once with :data:`CAR_RETRY_FACTOR` times the iterations and time limit; when the retry
+    finds nothing either (a goal walled in, which a sampling planner cannot tell from an unlucky search, or a
     start or goal pose the check refuses), the failure is stored as well, so the car keeps the
     straight-line guess until its goal changes instead of searching in vain at every step. The
     seed of a plan is derived from the scenario's seed, the agent and how many plans the agent

@@ -6,9 +6,9 @@ the poses ``(x, y, theta)`` of the car's reference point (the centre of the rear
 has curvature ``tan(delta) / wheelbase``), in OMPL's Reeds-Shepp state space: every motion between
 two poses is a shortest path made of arcs of the car's minimum turning radius
 ``1 / KinematicCar.max_curvature`` and straight lines, forwards or in reverse. By default it first
-tries the Dubins space (the same curves, forwards only), since the
-Reeds-Shepp paths reverse freely and a car reverses slowly; a car that may not reverse
-(``max_reverse_speed == 0``) is only ever planned in the Dubins space.
+tries the Dubins space (the same curves, forwards only), since the Reeds-Shepp paths reverse
+freely and a car reverses slowly; a car that may not reverse (``max_reverse_speed == 0``) is only
+ever planned in the Dubins space.
 :func:`car_guess` then drives along that path: it accelerates, cruises and brakes along the arc
 length within the car's speed and acceleration limits, stopping at every cusp (a change between
 forwards and reverse), and derives the inputs with :meth:`KinematicCar.guess_inputs`.
@@ -43,8 +43,8 @@ tree's motions in the direction they are driven, so it is correct in the asymmet
 as well. Optimality is not the point: the guess only has to put the car in the right homotopy
 class, and the MPC optimises the trajectory; the path simplifier removes the detours. A goal
 reachable only along a short arc (a pose close to the workspace edge or an obstacle, facing it)
-is a narrow target for the forwards-only search, which then spends its iterations
-in vain before the Reeds-Shepp attempt finds the manoeuvre with reversing.
+is a narrow target for the forwards-only search, which then spends its iterations in vain
+before the Reeds-Shepp attempt finds the manoeuvre with reversing.
 
 Reproducibility
 ---------------
@@ -58,8 +58,9 @@ from several threads is not reproducible.
 Failure
 -------
 :func:`car_path` returns ``None`` (it never raises for the geometry) when no attempt found a path
-within its iterations or the time limit, which includes a goal that no path reaches (a closed wall: a sampling planner
-cannot tell it from an unlucky search), or when the start or goal pose is itself invalid. The
+within its iterations or the time limit, which includes a goal that no path reaches (a closed
+wall: a sampling planner cannot tell it from an unlucky search), or when the start or goal pose
+is itself invalid. The
 caller falls back to :func:`car_straight_guess` (:func:`car_guess` does so itself when handed
 ``None``). Malformed arguments (shapes, non-finite numbers, a non-planar model) raise ValueError.
 """
@@ -343,8 +344,7 @@ def car_path(
     iterations : int
         Planner iterations per attempt (> 0). An attempt ends after them or at the time limit,
         whichever comes first; only a search that the iterations end is reproducible, so the time
-        limit should leave room for them (about 1 ms an iteration round the parking built-in's
-        dividers on this project's reference machine).
+        limit should leave them ample room.
     prefer_forward : bool
         For a car that may reverse, first plan forwards only (Dubins curves), and only when no
         such path is found plan with reversing (Reeds-Shepp curves). A Reeds-Shepp connection
@@ -360,8 +360,8 @@ def car_path(
         wrapped): the first row is exactly ``start_pose``, the last is ``goal_pose`` up to a
         multiple of 2 pi in the heading. Between consecutive rows the reference point follows
         arcs of curvature at most ``model.max_curvature`` and straight lines. None when no path
-        was found within ``iterations`` and ``time_limit`` (a closed wall included) or when ``start_pose`` or
-        ``goal_pose`` is invalid; nothing raises then.
+        was found within ``iterations`` and ``time_limit`` (a closed wall included) or when
+        ``start_pose`` or ``goal_pose`` is invalid; nothing raises then.
     """
     validity = _FootprintValidity(model, bounds, obstacles, d_min)
     start = _vector(start_pose, 3, "start_pose")
