@@ -127,6 +127,7 @@ solver:
     dynamic_copies: true
     closing_time: 0.25
     deadline_repair: select
+    repair_order: colour
 """
 
 
@@ -137,7 +138,7 @@ def test_every_admm_key_in_a_file_reaches_the_solver(tmp_path):
     assert (config.stall_window, config.stall_rho_factor, config.rho_bounds) == (7, 3.0, (0.5, 50.0))
     assert (config.carry_multipliers, config.warm_start, config.repair) == ("never", False, False)
     assert (config.owner_weight, config.dynamic_copies, config.closing_time) == (2.5, True, 0.25)
-    assert (config.repair_rounds, config.deadline_repair) == (5, "select")
+    assert (config.repair_rounds, config.deadline_repair, config.repair_order) == (5, "select", "colour")
     assert set(ADMMOptions.model_fields) == set(yaml.safe_load(ADMM_SECTION)["solver"]["admm"])
 
 

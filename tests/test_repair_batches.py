@@ -9,7 +9,7 @@ from collections import deque
 from hypothesis import given
 from hypothesis import strategies as st
 
-from swarmpc.solvers.admm.repair import independent_run
+from swarmpc.solvers.admm.repair import colour_order, independent_run
 
 
 @st.composite
@@ -45,3 +45,28 @@ def test_a_path_graph_batches_every_other_agent():
     assert independent_run(pending, neighbours) == [3, 1]
     assert independent_run(pending, neighbours) == [2, 0]
     assert not pending
+
+
+@given(graphs_and_queues())
+def test_the_colour_order_batches_no_more_rounds_than_a_greedy_colouring_needs(case):  # type: ignore[no-untyped-def]
+    """``repair_order: colour``: every agent once, and the batches of that order are independent
+    sets, at most max degree + 1 of them (a greedy colouring's bound), each a whole colour class
+    or more."""
+    neighbours, _ = case
+    order = colour_order(neighbours)
+    assert sorted(order) == list(range(len(neighbours)))
+    pending = deque(order)
+    batches = []
+    while pending:
+        batches.append(independent_run(pending, neighbours))
+    assert all(not any(j in neighbours[i] for i in batch for j in batch) for batch in batches)
+    assert len(batches) <= max(len(n) for n in neighbours) + 1
+
+
+def test_the_colour_order_asks_a_path_in_two_batches_where_the_index_order_needs_five():
+    path = [(1,), (0, 2), (1, 3), (2, 4), (3,)]
+    by_index = deque([4, 3, 2, 1, 0])
+    assert [independent_run(by_index, path) for _ in range(5)] == [[4], [3], [2], [1], [0]]
+    by_colour = deque(colour_order(path))
+    assert [independent_run(by_colour, path), independent_run(by_colour, path)] == [[3, 1], [4, 2, 0]]
+    assert not by_colour

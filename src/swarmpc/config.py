@@ -527,6 +527,12 @@ class ADMMOptions(_Frozen):
         "those that conflict re-plans (fewer overruns, a slower swarm: at 64 agents 1.2-2 times the time to the "
         "goals).",
     )
+    repair_order: Literal["index", "colour"] = Field(
+        default="index",
+        description="Order of the repair pass: `index` every coupled agent, highest index first (consecutive "
+        "agents that hold no copy of each other re-plan together); `colour` the classes of a greedy colouring of "
+        "the coupling graph one after another, each class re-planning together (fewer rounds on the critical path).",
+    )
     repair_rounds: int = Field(
         default=3, ge=1, le=100,
         description="Repair passes at most per step: after a pass, candidate pairs whose repaired plans conflict "

@@ -219,8 +219,8 @@ CARS: dict[str, Any] = {
 """The built-ins with cars: a 2 s horizon (a car needs room to turn), stage weights light on the
 heading and the speed (a car corrects a sideways offset only by turning away from its goal
 heading for a while), a numeric terminal weight
-(the car has no linearisation for ``Qf: lqr``), the centralised solver (ADMM does not take cars
-yet), 1 m/s and 1 m/s^2, and goals held to 10 cm and 10 degrees."""
+(the car has no linearisation for ``Qf: lqr``), the centralised solver (``solver.method: admm``
+flies them by consensus ADMM), 1 m/s and 1 m/s^2, and goals held to 10 cm and 10 degrees."""
 
 
 def _car(start: list[float], goal: list[float]) -> dict[str, Any]:

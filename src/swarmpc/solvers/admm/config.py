@@ -102,6 +102,15 @@ class ADMMConfig:
     at a 16 % higher cost, at M = 64 1.2-2 times the time to the goals
     (evidence: docs/lab/admm.md#deadline-selection)."""
 
+    repair_order: Literal["index", "colour"] = "index"
+    """The order of the repair pass (:meth:`~swarmpc.solvers.admm.repair.Repair.sequential`).
+    "index" (default): every coupled agent, highest index first; consecutive agents that hold no
+    copy of each other re-plan in one batch. "colour": the classes of a greedy colouring of the
+    coupling graph one after another (no two agents of a class are coupled), so each class is one
+    batch and a pass costs the critical path one re-plan per colour, not per run of consecutive
+    indices. Any order keeps every pair feasible when the solves succeed (each agent respects the
+    plans of those before it and the plans those after it will respect)."""
+
     def __post_init__(self) -> None:
         problem = _first_problem(self)
         if problem is not None:
@@ -129,7 +138,7 @@ class ADMMConfig:
             dynamic_copies=admm.dynamic_copies, owner_weight=admm.owner_weight, repair=admm.repair,
             repair_rounds=admm.repair_rounds, stall_window=admm.stall_window, stall_rho_factor=admm.stall_rho_factor,
             rho_bounds=(admm.rho_min, admm.rho_max), carry_multipliers=admm.carry_multipliers,
-            warm_start=admm.warm_start, deadline_repair=admm.deadline_repair,
+            warm_start=admm.warm_start, deadline_repair=admm.deadline_repair, repair_order=admm.repair_order,
         )
 
 
@@ -160,6 +169,8 @@ def _first_problem(cfg: ADMMConfig) -> str | None:
         return f"carry_multipliers: expected stable, always or never, got {cfg.carry_multipliers!r}"
     if cfg.deadline_repair not in ("sequential", "select"):
         return f"deadline_repair: expected sequential or select, got {cfg.deadline_repair!r}"
+    if cfg.repair_order not in ("index", "colour"):
+        return f"repair_order: expected index or colour, got {cfg.repair_order!r}"
     if cfg.local not in ("qp", "ipopt"):
         return f"local: expected qp or ipopt, got {cfg.local!r}"
     return None

@@ -13,6 +13,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
+import networkx as nx
 import numpy as np
 
 from swarmpc.formulation.ocp import OCPSettings
@@ -285,15 +286,19 @@ class Repair:
         and the agents repaired before it never saw it: each neighbour whose plan comes within
         max(Delta_ij) + d_min of that fallback re-plans once more against every final plan
         (evidence: docs/lab/admm.md#spread-scaling-first). ``agents``: re-plan only these (in this
-        order) and then their neighbours as above; None: every coupled agent, highest index first
-        (a tie-break; docs/lab/admm.md#closing-the-gap).
+        order) and then their neighbours as above; None: every coupled agent in the order of
+        ``config.repair_order``: highest index first (a tie-break; docs/lab/admm.md#closing-the-gap)
+        or colour by colour (:func:`colour_order`).
 
         Consecutive agents of that order that hold no copy of each other are asked in one batch
         (:func:`independent_run`): the answers are those of asking them one after another, and
         the batch costs the step's critical path only its slowest re-plan."""
         repaired = list(results)
         neighbours = graph.neighbours
-        pending = deque(i for i in (list(range(len(results)))[::-1] if agents is None else agents) if neighbours[i])
+        if agents is None:
+            agents = colour_order(neighbours) if self.requests.config.repair_order == "colour" else \
+                list(range(len(results)))[::-1]
+        pending = deque(i for i in agents if neighbours[i])
         retried: set[int] = set()
         while pending:
             batch = independent_run(pending, neighbours)
@@ -366,6 +371,18 @@ def _cover(pairs: Sequence[tuple[int, int]]) -> list[int]:
 def _agents_of(pairs: Sequence[tuple[int, int]]) -> list[int]:
     """The agents of ``pairs``, highest index first (the repair pass's order)."""
     return sorted({k for pair in pairs for k in pair}, reverse=True)
+
+
+def colour_order(neighbours: Sequence[Sequence[int]]) -> list[int]:
+    """Every agent, the classes of a greedy colouring of the coupling graph (``neighbours``) one
+    after another (largest-degree-first colouring, :func:`networkx.greedy_color`), highest index first
+    within a class: no two agents of a class are coupled, so :func:`independent_run` asks each class
+    in one batch."""
+    graph: nx.Graph[int] = nx.Graph()
+    graph.add_nodes_from(range(len(neighbours)))
+    graph.add_edges_from((i, j) for i, row in enumerate(neighbours) for j in row)
+    colours = nx.greedy_color(graph, strategy="largest_first")
+    return sorted(range(len(neighbours)), key=lambda i: (colours[i], -i))
 
 
 def independent_run(pending: deque[int], neighbours: Sequence[Sequence[int]]) -> list[int]:
