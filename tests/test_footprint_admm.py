@@ -197,3 +197,23 @@ def test_owner_weighted_consensus_leans_to_the_owner_and_keeps_multipliers_summi
         assert np.allclose(weight * np.abs(owner_offset), np.abs(copy_offset))
         assert np.max(np.abs(copy_offset)) > 1e-6  # the holders disagreed: a real test
 
+
+
+def test_an_agent_standing_still_restarts_from_the_guess_when_its_goal_moves() -> None:
+    """The rule of :meth:`FootprintADMMSolver._restarts`: only an agent whose last plan stands
+    still and whose goal moved since the last step starts afresh."""
+    from types import SimpleNamespace
+
+    solver = FootprintADMMSolver(swarm_of(car(horizon=5), car(horizon=5)))
+    still = np.tile([0.5, 0.2, 0.3, 0.0], (6, 1))
+    moving = still.copy()
+    moving[:, 0] += np.linspace(0.0, 0.3, 6)
+    goals = [np.array([2.0, 0.0, 0.0, 0.0]), np.array([-2.0, 0.0, 0.0, 0.0])]
+    assert solver._restarts(goals) == frozenset()  # no last step yet
+    solver._goals = [g.copy() for g in goals]
+    solver._agents = [SimpleNamespace(solution=SimpleNamespace(x={"X": plan.T})) for plan in (still, moving)]
+    assert solver._restarts(goals) == frozenset()  # same goals
+    detour = [g + np.array([0.0, 1.0, 0.0, 0.0]) for g in goals]
+    assert solver._restarts(detour) == frozenset({0})  # the moving agent keeps its warm start
+    turned = [g + np.array([0.0, 0.0, 1.0, 0.0]) for g in goals]
+    assert solver._restarts(turned) == frozenset()  # a new heading alone is not a new goal position

@@ -69,6 +69,10 @@ SAFETY_TOLERANCE = 1e-6
 within its own tolerance, far below)."""
 
 
+STILL = 1e-3
+"""[m] a plan whose positions all lie within this of its first stands still (:meth:`FootprintADMMSolver._restarts`)."""
+
+
 REPAIR_PASSES = 3
 """Repair passes per step: the first repairs the violating pairs, the next ones the pairs that a
 braking fallback of the pass before violates."""
@@ -229,6 +233,8 @@ class FootprintADMMSolver:
         self._agents: list[_AgentState | None] = [None] * swarm.num_agents
         self._z: list[np.ndarray] | None = None
         """The last step's consensus, to start the next step's from (shifted)."""
+        self._goals: list[np.ndarray] | None = None
+        """The last step's goals (:meth:`_restarts`)."""
 
     def _order(self, i: int, pairs: list[tuple[int, int]]) -> tuple[int, ...]:
         """Agent i's neighbours, cars first, each kind in index order (the slot order)."""
@@ -254,10 +260,11 @@ class FootprintADMMSolver:
                                                      self.options.owner_weight)
         return self._qps[(i, kinds)]
 
-    def _start_agents(self, pairs: list[tuple[int, int]]) -> None:
+    def _start_agents(self, pairs: list[tuple[int, int]], restart: frozenset[int] = frozenset()) -> None:
         """Every agent's state for a new step: the previous answer shifted when the neighbours
         are unchanged, and with ``carry_multipliers`` the multipliers of every stable block
-        shifted (the others reset).
+        shifted (the others reset). Agents in ``restart`` start afresh, from the guess, as if their
+        neighbours had changed (:meth:`_restarts`).
 
         A block is stable when its agent has the neighbours it had: its holders are then the
         same, and all of them carry their multipliers of it, so these keep summing to zero and
@@ -265,7 +272,8 @@ class FootprintADMMSolver:
         holder after another holder dropped or reset its own would act as a constant force
         on the block's agent, which can hold a car short of a free goal."""
         order = [self._order(i, pairs) for i in range(self.swarm.num_agents)]
-        stable = [previous is not None and previous.neighbours == order[i] for i, previous in enumerate(self._agents)]
+        stable = [previous is not None and previous.neighbours == order[i] and i not in restart
+                  for i, previous in enumerate(self._agents)]
         for i, neighbours in enumerate(order):
             previous = self._agents[i]
             state = _AgentState(neighbours, self._problem(i, neighbours), qp=self._qp(i, neighbours))
@@ -432,7 +440,9 @@ class FootprintADMMSolver:
         started = time.perf_counter()
         swarm, m = self.swarm, self.swarm.num_agents
         states = [np.asarray(x, float) for x in states]
-        self._start_agents(coupled_pairs(swarm, np.array(states), self.options.coupling_margin))
+        restart = self._restarts(goals)
+        self._goals = [np.asarray(g, float).copy() for g in goals]
+        self._start_agents(coupled_pairs(swarm, np.array(states), self.options.coupling_margin), restart)
         step = _Step(states, [np.asarray(g, float) for g in goals], self._first_consensus(guesses), self.options.rho)
         fallback = np.zeros(m, bool)
         try:
@@ -452,6 +462,24 @@ class FootprintADMMSolver:
         self._z = step.z
         repaired = self._repair(step, plans, inputs, fallback)
         return self._outcome(step, plans, inputs, fallback, iterations, repaired, started)
+
+    def _restarts(self, goals: Sequence[np.ndarray]) -> frozenset[int]:
+        """Agents whose last plan stands still (its positions within :data:`STILL` of the first)
+        and whose goal moved since the last step (a deadlock detour, or its end): they start from
+        the guess. Warm-started from a plan at rest, a car's local solves kept it at rest after
+        its goal moved, detour after detour, where a start from the guess (the route to the new
+        goal) set it moving (evidence: docs/lab/cars.md#parking-admm-probe)."""
+        if self._goals is None:
+            return frozenset()
+        out = set()
+        for i, (state, agent) in enumerate(zip(self._agents, self.swarm.agents, strict=True)):
+            if state is None or state.solution is None:
+                continue
+            positions = agent.settings.model.position(np.asarray(state.solution.x["X"]).T)
+            moved = np.max(np.abs(np.asarray(goals[i], float)[:2] - self._goals[i][:2]))
+            if np.max(np.abs(positions - positions[0])) < STILL and moved > 0:
+                out.add(i)
+        return frozenset(out)
 
     def _first_consensus(self, guesses: Sequence[np.ndarray]) -> list[np.ndarray]:
         """A step's first consensus: the last step's shifted for agents that carry their
