@@ -55,11 +55,22 @@ def test_a_signal_gives_a_complete_interrupted_folder(tmp_path, sig, executor):
     assert summary["steps"] == inputs.shape[0] == states.shape[0] - 1 >= 1
 
 
-# The console script's own wrapper, plus one line that says the entry point is loaded: a Ctrl-C
-# before that line lands in the interpreter's start-up (runpy, site), before any of the package's
-# code runs, which no program can turn into one line (on a loaded machine a fixed 20 ms delay
-# after the launch sometimes landed there).
-ENTRY_POINT = "import sys; from swarmpc._launch import main; print('loaded', flush=True); main()"
+# The console script's own wrapper, plus one line that says the command line's import has begun
+# (printed by an import hook when ``swarmpc.cli`` is first looked up): a Ctrl-C before that line
+# lands in the interpreter's start-up (runpy, site) or between statements before the entry point
+# has taken Ctrl-C over, which no program can turn into one line (on a loaded machine a signal
+# sent just after a line printed before ``main()`` sometimes landed there).
+ENTRY_POINT = """
+import sys
+from swarmpc._launch import main
+class Announce:
+    def find_spec(self, name, path=None, target=None):
+        if name == "swarmpc.cli":
+            print("loaded", flush=True)
+        return None
+sys.meta_path.insert(0, Announce())
+main()
+"""
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.02, 0.1, 0.25])

@@ -28,9 +28,11 @@ def main() -> None:
         else:
             sys.__unraisablehook__(unraisable)
 
-    sys.unraisablehook = note_interrupts
-    previous = signal.signal(signal.SIGINT, on_sigint)
+    previous = signal.getsignal(signal.SIGINT)
     try:
+        # inside the try: ``signal.signal`` first runs the handler of a Ctrl-C already pending
+        sys.unraisablehook = note_interrupts
+        signal.signal(signal.SIGINT, on_sigint)
         from swarmpc.cli import main as cli_main
     except BaseException as error:  # noqa: BLE001 - only interrupts are swallowed, see below
         if not (caused_by_interrupt(error) or received):
