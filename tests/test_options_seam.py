@@ -191,11 +191,12 @@ def test_the_qp_section_mirrors_the_qp_options():
 
 def test_the_qp_section_reaches_the_agents_qp_steps(tmp_path):
     scn = from_yaml(tmp_path, "solver:\n  local: qp\n  qp: {max_rounds: 2, margin: 2.0e-5, eps_abs: 1.0e-5, "
-                              "speed_facets: 8, polish: false}\n")
+                              "speed_facets: 8, polish: false, repair_solver: piqp}\n")
     with Controller(scn) as mpc:
         agent = mpc.solver.executor._agents[0]
         options = agent.nlp.qp.options
-    assert options == QPLocalOptions(max_rounds=2, margin=2e-5, eps_abs=1e-5, speed_facets=8, polish=False)
+    assert options == QPLocalOptions(max_rounds=2, margin=2e-5, eps_abs=1e-5, speed_facets=8, polish=False,
+                                     repair_solver="piqp")
 
 
 # ------------------------------------------------------------------------------ executor
@@ -274,6 +275,7 @@ BAD = {
     "solver.ipopt.mu_strategy": {"solver": {"ipopt": {"mu_strategy": "probing"}}},
     "solver.qp.eps_abs": {"solver": {"qp": {"eps_abs": 0}}},
     "solver.qp.speed_facets": {"solver": {"qp": {"speed_facets": 3}}},
+    "solver.qp.repair_solver": {"solver": {"qp": {"repair_solver": "qpoases"}}},
     "executor.type": {"executor": {"type": "gpu"}},
     "executor.workers": {"executor": {"workers": 2}},
     "executor.address": {"executor": {"type": "process", "address": "auto"}},

@@ -638,6 +638,17 @@ class QPOptions(_Frozen):
         description="Facets of the inner polytope that stands in for the speed limit. `null`: 16 in 2D, the "
         "26 cube directions in 3D.",
     )
+    solver: Literal["osqp", "piqp"] = Field(
+        default="osqp",
+        description="QP solver of the local steps of the ADMM iterations (copies free): `osqp` (first-order, "
+        "warm-started from the last answer) or `piqp` (interior point).",
+    )
+    repair_solver: Literal["osqp", "piqp"] = Field(
+        default="osqp",
+        description="QP solver of the repair passes' local steps (neighbours' plans held fixed): `osqp` or "
+        "`piqp` (interior point: about ten iterations where OSQP needs hundreds on these tightly "
+        "constrained QPs, and a quick verdict on an infeasible one).",
+    )
 
 
 REMOVED_SOLVER_KEYS: typing.Mapping[str, str] = types.MappingProxyType({

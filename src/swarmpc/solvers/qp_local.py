@@ -83,6 +83,7 @@ from swarmpc.formulation.ocp import OCPSettings
 __all__ = [
     "LocalShape",
     "OSQPBackend",
+    "PIQPBackend",
     "PROVEN_INFEASIBLE",
     "QPAnswer",
     "QPBackend",
@@ -133,6 +134,10 @@ class QPLocalOptions:
     """[m] a row within this of its bound counts as near it for ``certificate_tol``."""
     speed_facets: int | None = None
     """Facets of the inner speed polytope; None: 16 in 2D, the 26 cube directions in 3D."""
+    solver: str = "osqp"
+    """QP solver of the calls whose copies are free (the ADMM iterations): "osqp" or "piqp"."""
+    repair_solver: str = "osqp"
+    """QP solver of the calls whose copies are pinned (the repair passes): "osqp" or "piqp"."""
 
     @classmethod
     def from_config(cls, config: QPOptions) -> QPLocalOptions:
@@ -587,6 +592,96 @@ class OSQPBackend:
         )
 
 
+PIQP_STATUS = {"PIQP_SOLVED": "solved", "PIQP_MAX_ITER_REACHED": "maximum iterations reached",
+               "PIQP_PRIMAL_INFEASIBLE": "primal infeasible", "PIQP_DUAL_INFEASIBLE": "dual infeasible",
+               "PIQP_NUMERICS": "numerics", "PIQP_UNSOLVED": "unsolved", "PIQP_INVALID_SETTINGS": "invalid settings"}
+"""PIQP's statuses in OSQP's words (a failed call's status reads ``qp_<status>`` either way)."""
+
+
+class PIQPBackend:
+    """PIQP (sparse proximal interior point) through its own Python API.
+
+    An interior-point method takes about ten iterations whatever its start, where OSQP's
+    first-order iterations number in the hundreds on a QP with many rows at their bounds (a
+    repair call against pinned neighbours) and in the thousands before OSQP declares such a QP
+    infeasible; it cannot use a warm start, which OSQP turns into a few iterations on the ADMM
+    iterations' slowly moving QPs. The rows whose bounds are equal at set-up (measured state,
+    dynamics) are PIQP's equalities, the rest its two-sided inequalities; a later call that
+    opens an equality row sets the solver up again. The answer's multipliers are returned in
+    OSQP's convention (one per row, positive at the upper bound) so either backend can start
+    from them."""
+
+    def __init__(self, options: QPLocalOptions) -> None:
+        self.options = options
+        self._solver: Any = None
+        self._eq = self._ineq = np.zeros(0, int)
+        self._P: sp.csc_matrix | None = None
+        self._A: sp.csc_matrix | None = None
+        self._parts: tuple[sp.csc_matrix, sp.csc_matrix, np.ndarray, np.ndarray] | None = None
+
+    def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, lower: np.ndarray,
+              upper: np.ndarray) -> None:
+        import piqp  # imported here: only this backend needs it
+
+        self._P, self._A = P, A
+        self._eq, self._ineq = np.flatnonzero(lower == upper), np.flatnonzero(lower != upper)
+        marker = sp.csc_matrix((np.arange(1, A.nnz + 1, dtype=float), A.indices, A.indptr), shape=A.shape)
+        eq, ineq = marker[self._eq].tocsc(), marker[self._ineq].tocsc()
+        self._parts = (eq, ineq, eq.data.astype(int) - 1, ineq.data.astype(int) - 1)
+        solver = piqp.SparseSolver()
+        solver.settings.eps_abs, solver.settings.eps_rel = self.options.eps_abs, self.options.eps_rel
+        solver.settings.compute_timings = True  # the answer's solver time (diagnostics)
+        A_eq, A_in = self._split(A.data)
+        solver.setup(P, q, A_eq, lower[self._eq], A_in, lower[self._ineq], upper[self._ineq])
+        self._solver = solver
+
+    def _split(self, data: np.ndarray) -> tuple[sp.csc_matrix, sp.csc_matrix]:
+        """(equality rows, inequality rows) of A with values ``data`` (A's CSC order)."""
+        assert self._parts is not None
+        eq, ineq, eq_map, in_map = self._parts
+        eq, ineq = eq.copy(), ineq.copy()
+        eq.data, ineq.data = data[eq_map], data[in_map]
+        return eq, ineq
+
+    def update(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, P_data: np.ndarray | None,
+               A_data: np.ndarray | None) -> None:
+        assert self._P is not None and self._A is not None
+        P = self._P if P_data is None else sp.csc_matrix((P_data, self._P.indices, self._P.indptr), shape=self._P.shape)
+        A = self._A if A_data is None else sp.csc_matrix((A_data, self._A.indices, self._A.indptr), shape=self._A.shape)
+        if np.any(lower[self._eq] != upper[self._eq]):  # an equality row opened: new row split
+            self.setup(P, q, A, lower, upper)
+            return
+        self._P, self._A = P, A
+        changes: dict[str, Any] = {"c": q, "b": lower[self._eq], "h_l": lower[self._ineq], "h_u": upper[self._ineq]}
+        if P_data is not None:
+            changes["P"] = P
+        if A_data is not None:
+            changes["A"], changes["G"] = self._split(A_data)
+        self._solver.update(**changes)
+
+    def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer:
+        status = PIQP_STATUS.get(self._solver.solve().name, "unsolved")
+        result, info = self._solver.result, self._solver.result.info
+        time_spent = float(info.solve_time + info.update_time)
+        if status != "solved":
+            return QPAnswer(x, np.zeros(self._A.shape[0] if self._A is not None else 0), False, status,
+                            int(info.iter), time_spent)
+        duals = np.zeros(len(self._eq) + len(self._ineq))
+        duals[self._eq] = result.y
+        duals[self._ineq] = np.asarray(result.z_u) - np.asarray(result.z_l)
+        return QPAnswer(np.array(result.x, float), duals, True, status, int(info.iter), time_spent)
+
+
+def qp_backend(options: QPLocalOptions, pinned: bool = False) -> QPBackend:
+    """The backend ``options`` name for a shape's calls: ``repair_solver`` when the copies are
+    ``pinned`` (a repair pass), else ``solver``."""
+    name = options.repair_solver if pinned else options.solver
+    backends: dict[str, Callable[[QPLocalOptions], QPBackend]] = {"osqp": OSQPBackend, "piqp": PIQPBackend}
+    if name not in backends:
+        raise ValueError(f"solver.qp: unknown QP solver {name!r} (osqp or piqp)")
+    return backends[name](options)
+
+
 class LocalQP:
     """One shape's QP and its solver: set up on the first call, then updated in place."""
 
@@ -763,7 +858,7 @@ class SequentialLocalQP:
                  backend: QPBackend | None = None) -> None:
         self.settings, self.shape, self.options = s, shape, options
         self.problem = LocalQPProblem(s, shape, options)
-        self.qp = LocalQP(self.problem, backend or OSQPBackend(options))
+        self.qp = LocalQP(self.problem, backend or qp_backend(options, shape.pinned))
         self.certify = Certifier(s)
         self.transition, self.response = rollout_matrices(s)
         self.proof = SeparationProof(s, self.transition, self.response, options.margin) if (
@@ -1032,12 +1127,14 @@ class QPLocalLadder:
     ``duals``: (unused, QP multipliers) of the previous solve of the same shape. A lock guards
     the built solvers (stateful OSQP objects) under threads; pickling keeps the recipe only and
     a worker process builds its own. ``options`` None: those of ``settings.qp`` (a scenario's
-    ``solver.qp`` section, :meth:`QPLocalOptions.from_config`).
+    ``solver.qp`` section, :meth:`QPLocalOptions.from_config`). ``backend``: the QP solver of
+    every shape, made from the options; None: the one the options name for the shape
+    (:func:`qp_backend`).
     """
 
     def __init__(self, settings: OCPSettings, pair_collision: str | None = None,
                  options: QPLocalOptions | None = None,
-                 backend: Callable[[QPLocalOptions], QPBackend] = OSQPBackend) -> None:
+                 backend: Callable[[QPLocalOptions], QPBackend] | None = None) -> None:
         self.settings = settings
         self.pair_collision = pair_collision or settings.collision
         self.options = options or QPLocalOptions.from_config(settings.qp)
@@ -1055,7 +1152,8 @@ class QPLocalLadder:
     def stepper(self, shape: LocalShape) -> SequentialLocalQP:
         """The built local step of ``shape`` (built now on first use)."""
         if shape not in self._built:
-            self._built[shape] = SequentialLocalQP(self.settings, shape, self.options, self.backend(self.options))
+            backend = self.backend(self.options) if self.backend is not None else None
+            self._built[shape] = SequentialLocalQP(self.settings, shape, self.options, backend)
         return self._built[shape]
 
     def solve(
