@@ -644,10 +644,10 @@ class QPOptions(_Frozen):
         "warm-started from the last answer) or `piqp` (interior point).",
     )
     repair_solver: Literal["osqp", "piqp"] = Field(
-        default="osqp",
-        description="QP solver of the repair passes' local steps (neighbours' plans held fixed): `osqp` or "
-        "`piqp` (interior point: about ten iterations where OSQP needs hundreds on these tightly "
-        "constrained QPs, and a quick verdict on an infeasible one).",
+        default="piqp",
+        description="QP solver of the repair passes' local steps (neighbours' plans held fixed): `piqp` "
+        "(interior point: about ten iterations where OSQP needs hundreds on these tightly constrained QPs, "
+        "and a quick verdict on an infeasible one) or `osqp`.",
     )
 
 
@@ -705,8 +705,8 @@ class SolverConfig(_Frozen):
     local: Literal["qp", "ipopt"] = Field(
         default="ipopt",
         description="ADMM agents' local step: ipopt (the OBCA NLP by IPOPT, the reference) or qp (a short "
-        "sequence of convex QPs on OSQP with the OBCA certificates held fixed, whose plans are collision-free "
-        "as they stand; a call the QP path fails is solved by IPOPT instead)",
+        "sequence of convex QPs (OSQP; PIQP in the repair passes, `solver.qp`) with the OBCA certificates held "
+        "fixed, whose plans are collision-free as they stand; a call the QP path fails is solved by IPOPT instead)",
     )
     deadline: float | None = Field(
         default=None, gt=0,

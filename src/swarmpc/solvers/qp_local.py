@@ -32,14 +32,19 @@ when every position the agent can reach at some step within its input box lies c
 d_min to a held neighbour, no plan exists, and the call is reported :data:`PROVEN_INFEASIBLE`
 (under acceleration limits most failed repair calls are of this kind).
 
-The QP solver is OSQP through its own API: a sparse solver whose matrix values can be updated in
-place, which the certificate rounds need (an active-set solver such as DAQP only pays off while
-nothing but vectors change and it keeps its own working set, which a solver shared by agents
-cannot; benchmarks/qp_solvers.py compares the candidates). It is set up once per problem shape
+The QP solver of the ADMM iterations' calls is OSQP through its own API: a sparse solver whose
+matrix values can be updated in place, which the certificate rounds need, and whose warm start
+from the last answer turns a slowly moving QP into a few iterations (an active-set solver such
+as DAQP only pays off while nothing but vectors change and it keeps its own working set, which a
+solver shared by agents cannot; benchmarks/qp_solvers.py compares the candidates). The repair
+passes' calls (copies pinned: many rows at their bounds, some calls infeasible) go to PIQP, an
+interior-point solver that takes about ten iterations whatever its start, where OSQP takes
+hundreds and thousands to declare a QP infeasible (``solver.qp.solver`` and
+``solver.qp.repair_solver`` choose; :func:`qp_backend`). Each is set up once per problem shape
 (copies, planes, pinned copies, pair form); a call changes only vectors and, where certificates
 or planes changed, matrix VALUES in a fixed sparsity pattern (explicit zeros kept), updated in
-place. A first-order answer violates rows by up to its tolerance: polishing makes it exact on its
-active set in practice, every separation, workspace, plane and speed row is tightened by
+place. An answer violates rows by up to the solver's tolerance: OSQP's polishing makes it exact
+on its active set in practice, every separation, workspace, plane and speed row is tightened by
 ``margin`` in case it does not, and the applied plan is rebuilt exactly (inputs clipped to their
 box, states rolled out through the discrete dynamics) and checked: separations by the values of
 its dual-feasible certificates (lower bounds on the distances, exact certificates if those fall
@@ -136,8 +141,8 @@ class QPLocalOptions:
     """Facets of the inner speed polytope; None: 16 in 2D, the 26 cube directions in 3D."""
     solver: str = "osqp"
     """QP solver of the calls whose copies are free (the ADMM iterations): "osqp" or "piqp"."""
-    repair_solver: str = "osqp"
-    """QP solver of the calls whose copies are pinned (the repair passes): "osqp" or "piqp"."""
+    repair_solver: str = "piqp"
+    """QP solver of the calls whose copies are pinned (the repair passes): "piqp" or "osqp"."""
 
     @classmethod
     def from_config(cls, config: QPOptions) -> QPLocalOptions:
