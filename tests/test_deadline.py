@@ -249,18 +249,3 @@ def test_a_deadline_stop_repairs_uncoupled_agents_in_one_batch():
         agents = [agent for agent, _ in batch]
         assert len(set(agents)) == len(agents)
         assert not any(other in agents for _, neighbours in batch for other in neighbours)
-
-
-def test_a_deadline_stop_by_planes_keeps_the_swarm_apart(crossing):
-    """paper-2d at its crossing under a 1 ms deadline, ended by the plane pass: every agent that
-    can meet another re-plans at once between planes drawn from the committed plans; the plans
-    and the flown states keep the bodies apart, and the swarm moves on."""
-    scn, states = crossing
-    tiny = scn.with_updates(**{"solver.deadline": 1e-3, "solver.admm.deadline_repair": "planes"})
-    applied, plans, records = fly(tiny, states, 25)
-    assert sum(r.deadline_stop for r in records) >= 10
-    d = scn.dim
-    assert count_body_collisions(applied[:, :, :d], scn.bodies) == 0
-    for k, plan in enumerate(plans):
-        assert count_body_collisions(np.transpose(plan[:, :, :d], (1, 0, 2)), scn.bodies) == 0, f"step {k}"
-    assert np.linalg.norm(applied[-1, :, :d] - applied[0, :, :d], axis=1).min() > 0.1

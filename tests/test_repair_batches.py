@@ -1,15 +1,19 @@
 """The repair pass asks runs of mutually uncoupled agents in one batch
 (:func:`swarmpc.solvers.admm.repair.independent_run`): the answers are those of the sequential
-order, and the batch costs the critical path only its slowest re-plan."""
+order, and the batch costs the critical path only its slowest re-plan. So do the re-plans around
+a failed agent (``Repair._replan_around``), checked against the one-by-one loop with a stand-in
+for the agents."""
 
 from __future__ import annotations
 
 from collections import deque
+from types import SimpleNamespace
 
-from hypothesis import given
+import numpy as np
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarmpc.solvers.admm.repair import colour_order, independent_run
+from swarmpc.solvers.admm.repair import Repair, colour_order, independent_run
 
 
 @st.composite
@@ -70,3 +74,49 @@ def test_the_colour_order_asks_a_path_in_two_batches_where_the_index_order_needs
     by_colour = deque(colour_order(path))
     assert [independent_run(by_colour, path), independent_run(by_colour, path)] == [[3, 1], [4, 2, 0]]
     assert not by_colour
+
+
+class Agents:
+    """A stand-in for the agents: a re-plan moves the agent towards its neighbours' plans and
+    succeeds unless its neighbours' plans sum to a multiple of three (both deterministic)."""
+
+    def __init__(self, neighbours: list[tuple[int, ...]]) -> None:
+        self.neighbours = neighbours
+        self.batches: list[list[int]] = []
+
+    def answer(self, i: int, plans: list[SimpleNamespace]) -> SimpleNamespace:
+        around = np.mean([plans[j].own for j in self.neighbours[i]], axis=0)
+        own = 0.5 * plans[i].own + 0.5 * around + 0.01 * i
+        success = int(round(1000 * float(around.sum()))) % 3 != 0
+        return SimpleNamespace(own=own, success=success)
+
+    def replan_all(self, agents, graph, z, rho, plans, rescue, quick=False):  # type: ignore[no-untyped-def]
+        self.batches.append(list(agents))
+        return [self.answer(i, plans) for i in agents]
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 100_000), m=st.integers(2, 9))
+def test_re_plans_around_failures_in_batches_give_the_one_by_one_answers(seed, m):
+    rng = np.random.default_rng(seed)
+    coupled = np.triu(rng.random((m, m)) < 0.5, 1)
+    neighbours = [tuple(int(j) for j in np.flatnonzero(coupled[i] | coupled[:, i])) for i in range(m)]
+    plans = [SimpleNamespace(own=rng.uniform(0, 1.0, (2, 3)), success=bool(rng.random() < 0.7)) for _ in range(m)]
+    failures = [k for k in range(m) if not plans[k].success]
+    agents = Agents(neighbours)
+    repair = Repair.__new__(Repair)
+    repair.safety = SimpleNamespace(settings=SimpleNamespace(d_min=0.05), largest_delta=np.full((m, m), 0.3))
+    repair._replan_all = agents.replan_all  # type: ignore[method-assign]
+    batched = list(plans)
+    repair._replan_around(failures, SimpleNamespace(neighbours=neighbours), None, 0.0, batched)
+    one_by_one = list(plans)  # the loop the batches stand in for
+    for failed in failures:
+        for i in neighbours[failed]:
+            gap = np.max(np.abs(one_by_one[i].own - one_by_one[failed].own), axis=0).min()
+            if one_by_one[i].success and gap < 0.3 + 0.05:
+                one_by_one[i] = agents.answer(i, one_by_one)
+    for a, b in zip(batched, one_by_one, strict=True):
+        np.testing.assert_array_equal(a.own, b.own)
+        assert a.success == b.success
+    for batch in agents.batches:
+        assert not any(j in neighbours[i] for i in batch for j in batch)

@@ -678,9 +678,8 @@ class PIQPBackend:
 
 
 def qp_backend(options: QPLocalOptions, pinned: bool = False) -> QPBackend:
-    """The backend ``options`` name for a shape's calls: ``repair_solver`` when nothing but fixed
-    rows keep the agent apart from others (``pinned``: copies pinned, a repair pass, or planes and
-    no copies), else ``solver``."""
+    """The backend ``options`` name for a shape's calls: ``repair_solver`` when the copies are
+    ``pinned`` (a repair pass), else ``solver``."""
     name = options.repair_solver if pinned else options.solver
     backends: dict[str, Callable[[QPLocalOptions], QPBackend]] = {"osqp": OSQPBackend, "piqp": PIQPBackend}
     if name not in backends:
@@ -864,8 +863,7 @@ class SequentialLocalQP:
                  backend: QPBackend | None = None) -> None:
         self.settings, self.shape, self.options = s, shape, options
         self.problem = LocalQPProblem(s, shape, options)
-        fixed_rows = shape.pinned or (shape.planes > 0 and not shape.copies)
-        self.qp = LocalQP(self.problem, backend or qp_backend(options, fixed_rows))
+        self.qp = LocalQP(self.problem, backend or qp_backend(options, shape.pinned))
         self.certify = Certifier(s)
         self.transition, self.response = rollout_matrices(s)
         self.proof = SeparationProof(s, self.transition, self.response, options.margin) if (

@@ -91,7 +91,7 @@ class ADMMConfig:
     :meth:`ADMMSolver.plan`). With ``local`` "qp" a failed QP call is not handed to IPOPT, whose
     calls take longer than a step's budget (:attr:`LocalRequest.handover`)."""
 
-    deadline_repair: Literal["sequential", "select", "planes"] = "sequential"
+    deadline_repair: Literal["sequential", "select"] = "sequential"
     """How a step stopped by the deadline is made safe. "sequential" (default): the repair pass
     (:meth:`~swarmpc.solvers.admm.repair.Repair.sequential`), every coupled agent re-planning one
     after another. "select": no agent re-plans unless it must; each flies its new plan or the plan
@@ -100,10 +100,7 @@ class ADMMConfig:
     plans that conflict re-plans, and so do agents sent back two steps in a row. "select"
     overruns the deadline less often but the swarm is slower: at M = 16 a quarter of the misses
     at a 16 % higher cost, at M = 64 1.2-2 times the time to the goals
-    (evidence: docs/lab/admm.md#deadline-selection). "planes": every agent that can meet another
-    re-plans at once, in one batch, keeping to its side of per-step planes that split the room
-    between its committed plan and each such agent's (:meth:`~swarmpc.solvers.admm.repair.Repair.split`);
-    an agent whose call fails flies its committed plan, which keeps to its sides."""
+    (evidence: docs/lab/admm.md#deadline-selection)."""
 
     repair_order: Literal["index", "colour"] = "index"
     """The order of the repair pass (:meth:`~swarmpc.solvers.admm.repair.Repair.sequential`).
@@ -170,8 +167,8 @@ def _first_problem(cfg: ADMMConfig) -> str | None:
         return f"rho_bounds: must be 0 < low <= high, got {cfg.rho_bounds!r}"
     if cfg.carry_multipliers not in ("stable", "always", "never"):
         return f"carry_multipliers: expected stable, always or never, got {cfg.carry_multipliers!r}"
-    if cfg.deadline_repair not in ("sequential", "select", "planes"):
-        return f"deadline_repair: expected sequential, select or planes, got {cfg.deadline_repair!r}"
+    if cfg.deadline_repair not in ("sequential", "select"):
+        return f"deadline_repair: expected sequential or select, got {cfg.deadline_repair!r}"
     if cfg.repair_order not in ("index", "colour"):
         return f"repair_order: expected index or colour, got {cfg.repair_order!r}"
     if cfg.local not in ("qp", "ipopt"):

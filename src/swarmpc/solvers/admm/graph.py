@@ -31,10 +31,6 @@ PLANE_EXTRA = 1e-3
 """Separation [m] a plane pair keeps beyond d_min, so that a plan meeting its plane to the solver's
 constraint tolerance (1e-4 here) still clears d_min."""
 
-SPLIT_SPARE = 2e-4
-"""[m] Least room two plans leave between their splitting planes (:func:`splitting_planes`), so
-that each plan keeps to its side by more than the QP local step tightens a plane row."""
-
 PLANE_GOAL_RADIUS = 0.5
 """[m] An agent this close to its goal gets no separating planes (its near pairs keep copies): a
 plane lets a parked agent yield only half the spare room, which held up agents threading between
@@ -253,64 +249,6 @@ def separating_planes(
     return normals, first_offsets, second_offsets
 
 
-def splitting_planes(
-    first: np.ndarray, second: np.ndarray, delta: np.ndarray, clearance: float, floor: float, share: float = 0.5,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-step planes that split the room between two agents' plans, in any direction.
-
-    Parameters
-    ----------
-    first, second : ndarray, shape (d, K)
-        The two agents' planned positions at the constrained steps.
-    delta : ndarray, shape (d,)
-        The pair's Delta_ij per axis (b_i + b_j).
-    clearance : float
-        Distance beyond the box to keep where the plans keep more.
-    floor : float
-        Least distance to keep: where the plans keep less than ``clearance``, the planes keep
-        what they keep (less :data:`SPLIT_SPARE`), but at least ``floor``: where the plans keep
-        less than that, each side must move half the shortfall away from the other.
-    share : float
-        The part of the spare room (or of the shortfall) that falls to ``first``; the rest falls
-        to ``second``. 0: ``first`` is held where it is (its plane passes through its plan).
-
-    Returns
-    -------
-    normals : ndarray, shape (d, K)
-        Per step, the unit outward normal n_k of the box [-delta, delta] at its point nearest the
-        offset o_k = first_k - second_k; for an offset inside the box, the axis it is nearest to
-        leaving by.
-    first_offsets, second_offsets : ndarray, shape (K,)
-        ``first`` keeps n_k' p >= first_offsets[k], ``second`` keeps -n_k' q >= second_offsets[k].
-
-    Notes
-    -----
-    With that normal, e_k = n_k' o_k - h(n_k) is the signed distance of o_k to the box (the
-    Euclidean distance outside, minus the depth inside), h(n) = sum_a |n_a| delta_a its support.
-    Each side gives up its share (by default half) of the spare room s_k = e_k - c_k, c_k = max(floor, min(clearance,
-    e_k - SPLIT_SPARE)): any p, q that keep to their sides have n_k'(p - q) >= h(n_k) + c_k, and
-    the box lies in {x: n_k' x <= h(n_k)}, so their offset is at least c_k from the box. Where
-    e_k >= floor + SPLIT_SPARE the plans themselves keep to their sides with room to spare
-    (s_k >= SPLIT_SPARE, beyond the QP's row margin); elsewhere s_k < 0 and they do not.
-    """
-    first, second = np.asarray(first, float), np.asarray(second, float)
-    offset = first - second
-    half = np.asarray(delta, float).reshape(-1, 1)
-    gap = offset - np.clip(offset, -half, half)
-    outside = np.linalg.norm(gap, axis=0)
-    steps = np.arange(offset.shape[1])
-    axis = np.argmax(np.abs(offset) - half, axis=0)
-    inward = np.zeros_like(offset)  # the exit axis of an offset inside the box
-    inward[axis, steps] = np.where(offset[axis, steps] >= 0.0, 1.0, -1.0)
-    normals = np.where(outside > 0.0, gap / np.where(outside > 0.0, outside, 1.0), inward)
-    signed = np.where(outside > 0.0, outside, np.abs(offset[axis, steps]) - half[axis, 0])
-    keep = np.maximum(floor, np.minimum(clearance, signed - SPLIT_SPARE))
-    spare = signed - keep
-    first_offsets = np.einsum("dk,dk->k", normals, first) - share * spare
-    second_offsets = -np.einsum("dk,dk->k", normals, second) - (1.0 - share) * spare
-    return normals, first_offsets, second_offsets
-
-
 def couple(neighbours: Iterable[tuple[int, ...]], pairs: Iterable[tuple[int, int]]) -> list[tuple[int, ...]]:
     """``neighbours`` with every pair in ``pairs`` coupled (both ways)."""
     coupled = [set(n) for n in neighbours]
@@ -374,14 +312,6 @@ class CouplingGraph:
             neighbours = [tuple(j for j in n if (min(i, j), max(i, j)) not in dropped)
                           for i, n in enumerate(neighbours)]
         return cls(candidates, tuple(neighbours), _frozen(planes))
-
-    @classmethod
-    def planes_only(
-        cls, candidates: np.ndarray, planes: list[dict[int, tuple[np.ndarray, np.ndarray]]],
-    ) -> CouplingGraph:
-        """A graph without copies whose agents keep to ``planes`` (per agent, partner -> (normals
-        (d, K), offsets (K,)))."""
-        return cls(candidates, tuple(() for _ in planes), _frozen(planes))
 
     def coupled(self, pairs: Iterable[tuple[int, int]]) -> CouplingGraph:
         """This graph with every pair in ``pairs`` coupled with copies; a pair that had a

@@ -17,9 +17,9 @@ import networkx as nx
 import numpy as np
 
 from swarmpc.formulation.ocp import OCPSettings
-from swarmpc.solvers.admm.graph import PLANE_EXTRA, CouplingGraph, reach_radius, splitting_planes
+from swarmpc.solvers.admm.graph import CouplingGraph
 from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests
-from swarmpc.solvers.admm.safety import SafetyChecks, own_positions
+from swarmpc.solvers.admm.safety import SafetyChecks
 from swarmpc.solvers.base import fallback_plan
 
 """Most repair passes in one MPC step (the first, plus re-runs after coupling pairs whose repaired
@@ -90,8 +90,7 @@ class Repair:
         again after coupling any candidate pair whose repaired plans conflict, up to
         ``config.repair_rounds`` passes. ``stranded_check``: fallbacks that break the separation from
         another plan re-plan against every plan (rescued if their hard solves fail), then their
-        neighbours against them. ``committed`` (with ``repair_all``): the plane pass
-        (:meth:`split`, ``config.deadline_repair`` "planes") or the selection pass
+        neighbours against them. ``committed`` (with ``repair_all``): the selection pass
         (:meth:`select`) instead, which asks no agent; pairs of committed plans it leaves in
         conflict are cleared by :meth:`clear`, and only what that leaves (with candidate pairs its
         new plans bring into conflict) goes through the repair passes above, for those agents.
@@ -102,10 +101,7 @@ class Repair:
         agents: list[int] | None = None  # None: the full pass
         if repair_all and committed is not None:
             previous = results
-            if self.requests.config.deadline_repair == "planes":
-                results, left = self.split(graph, z, rho, results, committed)
-            else:
-                results, graph, left = self._select(graph, z, rho, results, committed, waiting)
+            results, graph, left = self._select(graph, z, rho, results, committed, waiting)
             new, failed = new_solves(results, previous)
             times, failures = times + new, failures + failed
             repair_all, graph, agents = bool(left), graph.coupled(left), _agents_of(left)
@@ -150,77 +146,6 @@ class Repair:
             first, second = self.pairs_to_check(graph, results, committed)  # a new plan may leave its reach
         apart = self.safety.pairs_apart(results, first, second)
         return results, graph, list(zip(first[~apart].tolist(), second[~apart].tolist(), strict=True))
-
-    def split(
-        self, graph: CouplingGraph, z: np.ndarray, rho: float, iterates: list[LocalResult],
-        committed: list[LocalResult],
-    ) -> tuple[list[LocalResult], list[tuple[int, int]]]:
-        """The plane pass: the agents re-plan at once, in one batch, without copies, each keeping
-        to its side of per-step planes that split the room between its and every other agent's
-        ``committed`` plan (:func:`splitting_planes`: d_min where those plans keep it, what they
-        keep down to d_min / 2 where not), for every pair that can meet (:meth:`pairs_to_check`).
-        A plane the agent cannot reach within the horizon is left out (:meth:`_reachable_planes`);
-        an agent left with none flies its ``iterates`` plan, and an agent whose call fails flies
-        its committed plan. Plans on their sides keep every pair apart, so one batch stands in
-        for the repair pass's sequence of batches. A committed plan keeps to its sides only where
-        the committed plans keep d_min / 2 (they may not at the braking step appended to them):
-        a second batch has the partners of agents whose calls failed, in pairs left closer than
-        d_min / 2, re-plan with the whole of such a pair's room or shortfall their own. Returns
-        the plans and the checked pairs whose plans still do not keep d_min / 2 (for the repair
-        pass)."""
-        M, d_min = len(iterates), self.safety.settings.d_min
-        first, second = self.pairs_to_check(graph, iterates, committed)
-        own = own_positions(committed)
-        planes: list[dict[int, tuple[np.ndarray, np.ndarray]]] = [{} for _ in range(M)]
-        for i, j in zip(first.tolist(), second.tolist(), strict=True):
-            normals, mine, theirs = splitting_planes(own[i], own[j], self.safety.pair_delta(i, j),
-                                                     d_min + PLANE_EXTRA, 0.5 * d_min)
-            planes[i][j], planes[j][i] = (normals, mine), (-normals, theirs)
-        planes = self._reachable_planes(planes)
-        chosen = [committed[i] if planes[i] else iterates[i] for i in range(M)]
-        failed = self._plane_batch(graph, z, rho, planes, [i for i in range(M) if planes[i]], chosen, iterates)
-        apart = self.safety.pairs_apart(chosen, first, second)
-        held: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
-        for i, j in zip(first[~apart].tolist(), second[~apart].tolist(), strict=True):
-            for fixed, mover in ((i, j), (j, i)):
-                if fixed in failed and mover not in failed:
-                    normals, _, theirs = splitting_planes(own[fixed], chosen[mover].own, self.safety.pair_delta(i, j),
-                                                          d_min + PLANE_EXTRA, 0.5 * d_min, share=0.0)
-                    held.setdefault(mover, dict(planes[mover]))[fixed] = (-normals, theirs)
-        if held:
-            planes = [held.get(i, mine) for i, mine in enumerate(planes)]
-            self._plane_batch(graph, z, rho, planes, sorted(held), chosen, iterates)
-            apart = self.safety.pairs_apart(chosen, first, second)
-        return chosen, list(zip(first[~apart].tolist(), second[~apart].tolist(), strict=True))
-
-    def _plane_batch(
-        self, graph: CouplingGraph, z: np.ndarray, rho: float, planes: list[dict[int, tuple[np.ndarray, np.ndarray]]],
-        asked: list[int], chosen: list[LocalResult], iterates: list[LocalResult],
-    ) -> set[int]:
-        """Agents ``asked`` re-plan in one batch, without copies, keeping to their ``planes``
-        (quick calls); a successful answer replaces the agent's plan in ``chosen`` (in place).
-        Returns the agents whose calls failed."""
-        cells = CouplingGraph.planes_only(graph.candidates, planes)
-        answers = self.solve([self.requests.request(i, cells, z, rho, rho, False, quick=True) for i in asked])
-        for answer in answers:
-            if answer.success:
-                chosen[answer.agent] = replace(answer, copies=iterates[answer.agent].copies)
-        return {a.agent for a in answers if not a.success}
-
-    def _reachable_planes(
-        self, planes: list[dict[int, tuple[np.ndarray, np.ndarray]]],
-    ) -> list[dict[int, tuple[np.ndarray, np.ndarray]]]:
-        """``planes`` without those the agent cannot cross: every position within its reach
-        bound (:func:`reach_radius`, a box about its measured position) keeps to the plane's side
-        at every step, so any plan it flies does."""
-        s = self.safety.settings
-        states = self.requests.states
-        start, reach = s.model.position(states), reach_radius(states, s)
-        def crossable(i: int, normals: np.ndarray, offsets: np.ndarray) -> bool:
-            lowest = normals.T @ start[i] - reach[i] * np.abs(normals).sum(axis=0)  # min of n_k' p over the box
-            return not np.all(lowest >= offsets)
-
-        return [{j: plane for j, plane in mine.items() if crossable(i, *plane)} for i, mine in enumerate(planes)]
 
     def select(
         self, graph: CouplingGraph, results: list[LocalResult], committed: list[LocalResult],
@@ -360,11 +285,11 @@ class Repair:
         all of them keeps every pair it is in feasible. If it still fails, its fallback is final,
         and the agents repaired before it never saw it: each neighbour whose plan comes within
         max(Delta_ij) + d_min of that fallback re-plans once more against every final plan
-        (evidence: docs/lab/admm.md#spread-scaling-first); a plan the pass did not ask for (a
-        committed plan a deadline stop's selection or plane pass chose) is no failed solve of it.
-        ``agents``: re-plan only these (in this order) and then their neighbours as above; None:
-        every coupled agent in the order of ``config.repair_order``: highest index first (a
-        tie-break; docs/lab/admm.md#closing-the-gap) or colour by colour (:func:`colour_order`).
+        (evidence: docs/lab/admm.md#spread-scaling-first); those re-plans ask consecutive
+        uncoupled agents in one batch (:meth:`_replan_around`). ``agents``: re-plan only these
+        (in this order) and then their neighbours as above; None: every coupled agent in the order
+        of ``config.repair_order``: highest index first (a tie-break;
+        docs/lab/admm.md#closing-the-gap) or colour by colour (:func:`colour_order`).
 
         Consecutive agents of that order that hold no copy of each other are asked in one batch
         (:func:`independent_run`): the answers are those of asking them one after another, and
@@ -376,7 +301,6 @@ class Repair:
                 list(range(len(results)))[::-1]
         pending = deque(i for i in agents if neighbours[i])
         retried: set[int] = set()
-        asked = set(pending)
         while pending:
             batch = independent_run(pending, neighbours)
             # a first failure re-plans at the end (its fallback is provisional); the retry and the
@@ -388,7 +312,7 @@ class Repair:
                 if not repaired[i].success and i not in retried:
                     retried.add(i)
                     pending.append(i)
-        failures = [k for k in range(len(results)) if k in asked and not repaired[k].success]
+        failures = [k for k in range(len(results)) if not repaired[k].success]
         self._replan_around(failures, graph, z, rho, repaired)
         return repaired
 

@@ -192,7 +192,7 @@ class ADMMSolver:
         repaired = not run.converged and repair
         before = self._clock.elapsed()[1]
         committed = None
-        if self._clock.stopped and cfg.deadline_repair in ("select", "planes"):
+        if self._clock.stopped and cfg.deadline_repair == "select":
             committed = committed_plans(states, self._applied, s, run.results)
         safe = Repair(requests, self.safety, self._solve).make_safe(
             run.graph, run.z, run.rho, run.results, repaired, repair, committed, self._waiting)
