@@ -17,25 +17,15 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
+from batched_qp import QPData as RecordedQP  # (P, q, A, bounds, start): one QP as handed to the solver
 
 from swarmpc.solvers import qp_local
 from swarmpc.solvers.qp_local import OSQPBackend, PIQPBackend, QPBackend, QPLocalOptions
-
-
-@dataclass
-class RecordedQP:
-    P: sp.csc_matrix
-    q: np.ndarray
-    A: sp.csc_matrix
-    lower: np.ndarray
-    upper: np.ndarray
-    start: np.ndarray
 
 
 class Recording(OSQPBackend):
