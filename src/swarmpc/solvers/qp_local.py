@@ -668,10 +668,9 @@ class PIQPBackend:
         status = PIQP_STATUS.get(self._solver.solve().name, "unsolved")
         result, info = self._solver.result, self._solver.result.info
         time_spent = float(info.solve_time + info.update_time)
-        if status != "solved":
-            return QPAnswer(x, np.zeros(self._A.shape[0] if self._A is not None else 0), False, status,
-                            int(info.iter), time_spent)
         duals = np.zeros(len(self._eq) + len(self._ineq))
+        if status != "solved":
+            return QPAnswer(x, duals, False, status, int(info.iter), time_spent)
         duals[self._eq] = result.y
         duals[self._ineq] = np.asarray(result.z_u) - np.asarray(result.z_l)
         return QPAnswer(np.array(result.x, float), duals, True, status, int(info.iter), time_spent)

@@ -344,13 +344,6 @@ class Repair:
         if batch:
             flush()
 
-    def _replan(
-        self, i: int, graph: CouplingGraph, z: np.ndarray, rho: float, plans: list[LocalResult],
-        rescue: bool = True,
-    ) -> LocalResult:
-        """Agent ``i``'s answer against its neighbours' current ``plans``, held fixed."""
-        return self._replan_all([i], graph, z, rho, plans, [rescue])[0]
-
     def _replan_all(
         self, agents: list[int], graph: CouplingGraph, z: np.ndarray, rho: float, plans: list[LocalResult],
         rescue: list[bool], quick: bool = False,
