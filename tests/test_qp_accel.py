@@ -17,12 +17,23 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import settings as hyp_settings
+from hypothesis import strategies as st
 
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.dynamics import discrete_matrices
 from swarmpc.model.geometry import box_signed_distance
 from swarmpc.solvers.admm import FallbackSolution, QPLocalSolverLadder
-from swarmpc.solvers.qp_local import PROVEN_INFEASIBLE, LocalShape, OSQPBackend, QPAnswer, QPLocalLadder, box_covered
+from swarmpc.solvers.qp_local import (
+    PROVEN_INFEASIBLE,
+    LocalShape,
+    OSQPBackend,
+    QPAnswer,
+    QPLocalLadder,
+    box_covered,
+    corners_covered,
+)
 
 
 def settings(dim: int, accel: float | None = 1.0) -> OCPSettings:
@@ -83,6 +94,23 @@ def test_box_covered_decides_unions_of_boxes():
     assert not box_covered(*box, quarters[0][:3], quarters[1][:3])  # one quarter missing
     assert box_covered(np.array([0.2, 0.2]), np.array([0.2, 0.9]), *quarters)  # a degenerate box (a segment)
     assert not box_covered(*box, np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+@hyp_settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), dim=st.sampled_from([2, 3]), count=st.integers(0, 12))
+def test_the_corner_filter_keeps_every_covered_box(seed, dim, count):
+    """The proof's cheap filter (every corner in some box) drops only boxes the exact union test
+    refuses too: random boxes on a coarse grid, so that faces meet and corners touch exactly."""
+    rng = np.random.default_rng(seed)
+    K = 6
+    lower = rng.integers(0, 4, (K, dim)) * 0.25
+    upper = lower + rng.integers(0, 4, (K, dim)) * 0.25
+    boxes_lower = rng.integers(-2, 4, (K, count, dim)) * 0.25
+    boxes_upper = boxes_lower + rng.integers(1, 6, (K, count, dim)) * 0.25
+    kept = set(corners_covered(lower, upper, boxes_lower, boxes_upper).tolist())
+    for k in range(K):
+        if box_covered(lower[k], upper[k], boxes_lower[k], boxes_upper[k]):
+            assert k in kept
 
 
 @pytest.mark.parametrize("dim", [2, 3])

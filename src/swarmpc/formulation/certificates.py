@@ -104,7 +104,9 @@ def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> Certificates
     """
     q, single = _columns(offsets)
     d, K = q.shape
-    half = np.broadcast_to(np.asarray(half_size, float).reshape(-1), (d,))[:, None]
+    half = np.asarray(half_size, float).reshape(-1, 1)  # (d, 1) or (1, 1): broadcast on the columns
+    if half.shape[0] not in (1, d):
+        raise ValueError(f"box_certificates: half_size must be a scalar or ({d},), got {half.shape[0]} values")
     excess = np.abs(q) - half
     outside = np.maximum(excess, 0.0)
     gap = np.sqrt(np.einsum("ik,ik->k", outside, outside))

@@ -628,7 +628,7 @@ class PIQPBackend:
               upper: np.ndarray) -> None:
         import piqp  # imported here: only this backend needs it
 
-        self._P, self._A = P, A
+        self._P, self._A = P.copy(), A.copy()  # own copies: updates write their values in place
         self._eq, self._ineq = np.flatnonzero(lower == upper), np.flatnonzero(lower != upper)
         marker = sp.csc_matrix((np.arange(1, A.nnz + 1, dtype=float), A.indices, A.indptr), shape=A.shape)
         eq, ineq = marker[self._eq].tocsc(), marker[self._ineq].tocsc()
@@ -641,25 +641,26 @@ class PIQPBackend:
         self._solver = solver
 
     def _split(self, data: np.ndarray) -> tuple[sp.csc_matrix, sp.csc_matrix]:
-        """(equality rows, inequality rows) of A with values ``data`` (A's CSC order)."""
+        """(equality rows, inequality rows) of A with values ``data`` (A's CSC order), written
+        into this backend's own two matrices (PIQP copies what it is given)."""
         assert self._parts is not None
         eq, ineq, eq_map, in_map = self._parts
-        eq, ineq = eq.copy(), ineq.copy()
-        eq.data, ineq.data = data[eq_map], data[in_map]
+        eq.data[:], ineq.data[:] = data[eq_map], data[in_map]
         return eq, ineq
 
     def update(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, P_data: np.ndarray | None,
                A_data: np.ndarray | None) -> None:
         assert self._P is not None and self._A is not None
-        P = self._P if P_data is None else sp.csc_matrix((P_data, self._P.indices, self._P.indptr), shape=self._P.shape)
-        A = self._A if A_data is None else sp.csc_matrix((A_data, self._A.indices, self._A.indptr), shape=self._A.shape)
+        if P_data is not None:  # values written in place: a scipy matrix costs tens of microseconds
+            self._P.data[:] = P_data
+        if A_data is not None:
+            self._A.data[:] = A_data
         if np.any(lower[self._eq] != upper[self._eq]):  # an equality row opened: new row split
-            self.setup(P, q, A, lower, upper)
+            self.setup(self._P, q, self._A, lower, upper)
             return
-        self._P, self._A = P, A
         changes: dict[str, Any] = {"c": q, "b": lower[self._eq], "h_l": lower[self._ineq], "h_u": upper[self._ineq]}
         if P_data is not None:
-            changes["P"] = P
+            changes["P"] = self._P
         if A_data is not None:
             changes["A"], changes["G"] = self._split(A_data)
         self._solver.update(**changes)
@@ -698,11 +699,12 @@ class LocalQP:
 
     def solve(
         self, params: dict[str, Any], lin: Linearisation, start: np.ndarray, y: np.ndarray | None,
-        pinned: np.ndarray | None = None, slack_caps: dict[int, float] | None = None,
+        pinned: np.ndarray | None = None, slack_caps: dict[int, float] | None = None, q: np.ndarray | None = None,
     ) -> QPAnswer:
-        """Solve with certificates ``lin`` from primal ``start`` (and dual ``y``)."""
+        """Solve with certificates ``lin`` from primal ``start`` (and dual ``y``); ``q``: the
+        linear cost of ``params`` when the caller has it (it does not depend on ``lin``)."""
         pb = self.problem
-        q = pb.linear_cost(params)
+        q = pb.linear_cost(params) if q is None else q
         lower, upper = pb.bounds(lin, params, pinned, slack_caps)
         key = (float(params["rho"]), float(params["owner_weight"]))
         P_data = pb.cost_values(*key)
@@ -832,12 +834,26 @@ class SeparationProof:
         reach = self.settings.d_min - self.margin
         widths = np.concatenate([np.eye(d) * reach, np.full((1, d), reach / np.sqrt(d))])  # (d+1, d)
         half = (delta.T[:, None, :] + widths[None]).reshape(-1, d)  # (n (d+1), d)
-        for k in range(K):
-            copies = np.repeat(pinned[:, :, k], d + 1, axis=0)
-            if box_covered(centre[:, k] - self.spread[:, k], centre[:, k] + self.spread[:, k],
-                           copies - half, copies + half):
+        copies = np.repeat(np.transpose(pinned, (2, 0, 1)), d + 1, axis=1)  # (K, n (d+1), d)
+        lower, upper = (centre - self.spread).T, (centre + self.spread).T  # (K, d)
+        for k in corners_covered(lower, upper, copies - half, copies + half):
+            if box_covered(lower[k], upper[k], copies[k] - half, copies[k] + half):
                 return True
         return False
+
+
+def corners_covered(lower: np.ndarray, upper: np.ndarray, boxes_lower: np.ndarray,
+                     boxes_upper: np.ndarray) -> np.ndarray:
+    """Indices k of the boxes [lower[k], upper[k]] ((K, d) each) whose every corner lies in one of
+    the boxes [boxes_lower[k], boxes_upper[k]] ((K, B, d) each): a box with a corner outside their
+    union is not covered (the corner is one of its points), so only these can be
+    (:func:`box_covered` decides them)."""
+    d = lower.shape[1]
+    pick = (np.arange(2 ** d)[:, None] >> np.arange(d)[None]) & 1  # (2^d, d) corner choices
+    corners = np.where(pick[None].astype(bool), upper[:, None], lower[:, None])  # (K, 2^d, d)
+    inside = np.all((boxes_lower[:, None] <= corners[:, :, None]) & (corners[:, :, None] <= boxes_upper[:, None]),
+                    axis=3)  # (K, 2^d, B)
+    return np.flatnonzero(np.all(np.any(inside, axis=2), axis=1))
 
 
 @dataclass(frozen=True)
@@ -1000,8 +1016,9 @@ class SequentialLocalQP:
     ) -> tuple[QPAnswer, np.ndarray, Linearisation, bool]:
         """The certificate loop from (x, lin): (last answer, plan, its best certificates, converged)."""
         converged = False
+        q = self.problem.linear_cost(params)
         for _ in range(self.options.max_rounds):
-            answer = self.qp.solve(params, lin, x, y, pinned, slack_caps)
+            answer = self.qp.solve(params, lin, x, y, pinned, slack_caps, q)
             tally[0] += 1
             tally[1] += answer.iterations
             tally[2] += answer.solver_time
