@@ -302,7 +302,10 @@ class LocalAgent:
         if last is not None and same_shape and not request.new_step:
             return last.x_vec  # the same problem's last solution, already laid out
         warm = last is not None and request.new_step and same_shape
-        point = initial_point(request, self.settings, self.dynamic_copies, seed=not warm and self.seed_duals)
+        # the QP path starts from the plan and copies and certifies them itself: the seeded
+        # certificates would be read only by IPOPT, after a failed QP call it may take over
+        read = not isinstance(self.nlp, QPLocalSolverLadder) or self._handover
+        point = initial_point(request, self.settings, self.dynamic_copies, seed=not warm and self.seed_duals and read)
         if warm:
             assert last is not None
             shifted = shift_blocks(last.x)
