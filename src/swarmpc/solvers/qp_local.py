@@ -764,6 +764,10 @@ def local_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: OC
     return cost + s.kappa * float(sum(np.sum(v) for v in slacks))
 
 
+VERIFY_TOL = 1e-7
+"""Largest violation of a constraint a verified plan may show (:meth:`SequentialLocalQP.verified`;
+IPOPT's constraint tolerance in the reference check)."""
+
 PROVEN_INFEASIBLE = "qp_proven_infeasible"
 """Status of a call whose problem has no feasible point at all (:class:`SeparationProof`): no
 solver can answer it, so it is not handed to another one."""
@@ -1060,6 +1064,26 @@ class SequentialLocalQP:
                 change = max(change, float(np.max(np.abs(old_n - new_n) * near[:, None, :])))
         return change <= o.certificate_tol
 
+    def verified(self, params: dict[str, Any], X: np.ndarray, U: np.ndarray,
+                 pinned: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+        """(named blocks, solution vector) of the plan (``X`` (s, N+1), ``U`` (m, N)) as an answer
+        of this shape against the ``pinned`` copies (n, d, K) when it meets the problem's
+        constraints to :data:`VERIFY_TOL`: it flies the dynamics from the measured state within
+        the input box, every pair keeps d_min (slack or not) and every hard claim of
+        :meth:`violation` holds, by the best certificates of its positions; None otherwise. A
+        repair keeps its agent's current plan this way when its solves fail."""
+        s = self.settings
+        X, U = np.asarray(X, float), np.asarray(U, float)
+        rebuilt, clipped = self.rebuild(np.asarray(params["x0"], float), U)
+        if np.max(np.abs(clipped - U), initial=0.0) > VERIFY_TOL or np.max(np.abs(rebuilt - X)) > VERIFY_TOL:
+            return None
+        own = X[s.model.position_rows, s.first_constrained_step:]
+        lin = self.certify(own, pinned, copy_deltas(params["delta"], self.shape.copies, s.dim))
+        if np.max(s.d_min - lin.pair_value, initial=0.0) > VERIFY_TOL or self.violation(X, lin, params) > VERIFY_TOL:
+            return None
+        blocks = self._blocks(X, U, pinned, lin)
+        return blocks, self.vector_of(blocks, params["delta"])
+
     def _failed(self, x: np.ndarray, status: str, wall: float, iterations: int) -> NLPSolution:
         blocks = {"X": x[self.problem.layout.X], "U": x[self.problem.layout.U]}
         return NLPSolution(x=blocks, x_vec=np.zeros(0), lam_x=np.zeros(0), lam_g=np.zeros(self.problem.A.shape[0]),
@@ -1213,6 +1237,18 @@ class QPLocalLadder:
         if sibling is None or vector.size != sibling.vector_size:
             raise ValueError("a guess vector must come from a QP local step of the same problem")
         return sibling
+
+    def verified(
+        self, params: dict[str, Any], point: dict[str, np.ndarray], fixed: dict[str, Any], *, copies: int,
+        planes: int = 0,
+    ) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+        """:meth:`SequentialLocalQP.verified` of the plan in ``point`` (X, U) against the copies
+        ``fixed`` pins (``C{c}``), by the pinned shape's step."""
+        pinned = np.array([np.asarray(fixed[f"C{c}"], float) for c in range(copies)])
+        pinned = pinned.reshape(copies, self.settings.dim, self.settings.num_constrained)
+        with self._lock:
+            stepper = self.stepper(LocalShape(copies, planes, True, self.pair_collision))
+            return stepper.verified(params, point["X"], point["U"], pinned)
 
     def guess_blocks(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, *, copies: int, planes: int = 0,

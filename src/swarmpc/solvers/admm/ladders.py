@@ -168,13 +168,16 @@ class QPLocalSolverLadder:
         self, params: dict[str, Any], point: dict[str, np.ndarray], fixed: dict[str, Any], *, copies: int,
         planes: int = 0,
     ) -> NLPSolution | None:
-        """:meth:`LocalSolverLadder.verified` by the reference problem, its solution vector laid
-        out for the QP path."""
-        kept = self.ipopt.verified(params, point, fixed, copies=copies, planes=planes)
+        """:meth:`LocalSolverLadder.verified` by the QP path's own exact check
+        (:meth:`swarmpc.solvers.qp_local.SequentialLocalQP.verified`: dynamics, input box, the
+        separations by the best certificates, the other hard claims), so that a repair on the
+        QP path never builds an IPOPT problem."""
+        kept = self.qp.verified(params, point, fixed, copies=copies, planes=planes)
         if kept is None:
             return None
-        vector = self.qp.solution_vector(kept.x, params, copies=copies, planes=planes, pinned=pins_copies(fixed))
-        return replace(kept, x_vec=vector, lam_x=np.zeros(0), lam_g=np.zeros(0))
+        blocks, vector = kept
+        return NLPSolution(x=blocks, x_vec=vector, lam_x=np.zeros(0), lam_g=np.zeros(0), cost=np.nan, success=True,
+                           status=KEPT_PLAN, iterations=0, solve_time=0.0)
 
 
 def pins_copies(fixed: dict[str, Any] | None) -> bool:
