@@ -120,3 +120,45 @@ def test_re_plans_around_failures_in_batches_give_the_one_by_one_answers(seed, m
         assert a.success == b.success
     for batch in agents.batches:
         assert not any(j in neighbours[i] for i in batch for j in batch)
+
+
+class Recording(Agents):
+    """:class:`Agents` that also record, per call, whether it was asked as a last attempt (rescue)."""
+
+    def __init__(self, neighbours: list[tuple[int, ...]]) -> None:
+        super().__init__(neighbours)
+        self.calls: list[tuple[int, bool]] = []
+
+    def replan_all(self, agents, graph, z, rho, plans, rescue, quick=False):  # type: ignore[no-untyped-def]
+        self.calls += list(zip(agents, rescue, strict=True))
+        return super().replan_all(agents, graph, z, rho, plans, rescue, quick)
+
+
+def sequential_calls(neighbours, plans, agents=None):  # type: ignore[no-untyped-def]
+    """The (agent, rescue) calls of one repair pass over ``plans`` with the stand-in agents."""
+    m = len(neighbours)
+    recording = Recording(neighbours)
+    repair = Repair.__new__(Repair)
+    repair.requests = SimpleNamespace(config=SimpleNamespace(repair_order="index"))
+    repair.safety = SimpleNamespace(settings=SimpleNamespace(d_min=0.05), largest_delta=np.full((m, m), 0.3))
+    repair._replan_all = recording.replan_all  # type: ignore[method-assign]
+    repair.sequential(SimpleNamespace(neighbours=neighbours), None, 0.0, list(plans), agents)
+    return recording.calls
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 100_000), m=st.integers(2, 9))
+def test_a_full_pass_rescues_only_on_the_retry_and_a_targeted_pass_on_every_call(seed, m):
+    """A first failure in a full pass is provisional (the agent is asked again at the end, and only
+    that last attempt may fly a rescue plan); every call of a targeted pass is final."""
+    rng = np.random.default_rng(seed)
+    coupled = np.triu(rng.random((m, m)) < 0.5, 1)
+    neighbours = [tuple(int(j) for j in np.flatnonzero(coupled[i] | coupled[:, i])) for i in range(m)]
+    plans = [SimpleNamespace(own=rng.uniform(0, 1.0, (2, 3)), success=True) for _ in range(m)]
+    calls = sequential_calls(neighbours, plans)
+    coupled_agents = sum(1 for n in neighbours if n)
+    assert sorted(agent for agent, _ in calls[:coupled_agents]) == [k for k in range(m) if neighbours[k]]
+    assert not any(rescue for _, rescue in calls[:coupled_agents])  # first attempts
+    assert all(rescue for _, rescue in calls[coupled_agents:])  # retries and re-plans around a failure
+    targeted = [k for k in range(m) if neighbours[k]][::-1]
+    assert all(rescue for _, rescue in sequential_calls(neighbours, plans, targeted))

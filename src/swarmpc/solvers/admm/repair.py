@@ -296,6 +296,7 @@ class Repair:
         the batch costs the step's critical path only its slowest re-plan."""
         repaired = list(results)
         neighbours = graph.neighbours
+        targeted = agents is not None  # a targeted pass's calls are all final
         if agents is None:
             agents = colour_order(neighbours) if self.requests.config.repair_order == "colour" else \
                 list(range(len(results)))[::-1]
@@ -305,7 +306,7 @@ class Repair:
             batch = independent_run(pending, neighbours)
             # a first failure re-plans at the end (its fallback is provisional); the retry and the
             # re-plan of a stranded fallback are final and may rescue
-            rescue = [agents is not None or i in retried for i in batch]
+            rescue = [targeted or i in retried for i in batch]
             for i, answer in zip(batch, self._replan_all(batch, graph, z, rho, repaired, rescue), strict=True):
                 repaired[i] = answer
             for i in batch:
