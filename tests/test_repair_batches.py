@@ -162,3 +162,32 @@ def test_a_full_pass_rescues_only_on_the_retry_and_a_targeted_pass_on_every_call
     assert all(rescue for _, rescue in calls[coupled_agents:])  # retries and re-plans around a failure
     targeted = [k for k in range(m) if neighbours[k]][::-1]
     assert all(rescue for _, rescue in sequential_calls(neighbours, plans, targeted))
+
+
+def test_a_later_round_re_plans_only_the_agents_of_the_pairs_it_coupled():
+    """After the full pass, pairs whose repaired plans conflict are coupled and only their agents
+    re-plan (each against all its neighbours' plans): the rest keep the first pass's plans."""
+    asked: list[list[int] | None] = []
+    conflicts = [[(1, 4), (4, 6)], []]
+    coupled: list[list[tuple[int, int]]] = []
+
+    class Graph(SimpleNamespace):
+        def coupled(self, pairs):  # type: ignore[no-untyped-def]
+            coupled.append(list(pairs))
+            return self
+
+    repair = Repair.__new__(Repair)
+    repair.requests = SimpleNamespace(config=SimpleNamespace(repair_rounds=3), states=np.zeros((8, 6)))
+    repair.safety = SimpleNamespace(checked_pairs=lambda *args: None, missing=lambda *args: conflicts.pop(0),
+                                    stranded_fallbacks=lambda results: [])
+    results = [SimpleNamespace(agent=i, success=True, solve_time=0.001) for i in range(8)]
+
+    def sequential(graph, z, rho, plans, agents=None):  # type: ignore[no-untyped-def]
+        asked.append(agents)
+        return [SimpleNamespace(**vars(p)) for p in plans]  # new answers
+
+    repair.sequential = sequential  # type: ignore[method-assign]
+    safe = repair.make_safe(Graph(candidates=None), None, 1.0, results, repair_all=True, stranded_check=False)
+    assert asked == [None, [6, 4, 1]]  # the full pass, then the coupled pairs' agents, highest first
+    assert coupled == [[(1, 4), (4, 6)]]
+    assert np.count_nonzero(safe.agent_times) == 8  # the first pass's answers count for every agent

@@ -87,15 +87,16 @@ class Repair:
         """The safety passes after the iterations.
 
         ``repair_all`` (ADMM stopped without consensus): the repair pass (:meth:`sequential`), and
-        again after coupling any candidate pair whose repaired plans conflict, up to
-        ``config.repair_rounds`` passes. ``stranded_check``: fallbacks that break the separation from
-        another plan re-plan against every plan (rescued if their hard solves fail), then their
-        neighbours against them. ``committed`` (with ``repair_all``): the selection pass
-        (:meth:`select`) instead, which asks no agent; pairs of committed plans it leaves in
-        conflict are cleared by :meth:`clear`, and only what that leaves (with candidate pairs its
-        new plans bring into conflict) goes through the repair passes above, for those agents.
-        Agents that fly their committed plans after :data:`STALE_STEPS` steps of it (``waiting``,
-        (M,)) re-plan first (:meth:`refresh`)."""
+        after coupling any candidate pair whose repaired plans conflict, a pass over the agents of
+        those pairs (each re-plans against all its neighbours' plans, so every pair it was
+        coupled in stays feasible), up to ``config.repair_rounds`` passes. ``stranded_check``:
+        fallbacks that break the separation from another plan re-plan against every plan (rescued
+        if their hard solves fail), then their neighbours against them. ``committed`` (with
+        ``repair_all``): the selection pass (:meth:`select`) instead, which asks no agent; pairs of
+        committed plans it leaves in conflict are cleared by :meth:`clear`, and only what that
+        leaves (with candidate pairs its new plans bring into conflict) goes through the repair
+        passes above, for those agents. Agents that fly their committed plans after
+        :data:`STALE_STEPS` steps of it (``waiting``, (M,)) re-plan first (:meth:`refresh`)."""
         times, failures = np.zeros(len(results)), 0
         states = self.requests.states
         agents: list[int] | None = None  # None: the full pass
@@ -118,7 +119,7 @@ class Repair:
             if not missing or round_ == rounds - 1:
                 break
             graph = graph.coupled(missing)
-            agents = None if agents is None else _agents_of(missing)
+            agents = _agents_of(missing)  # the others' pairs are as the last pass left them
         stranded = self.safety.stranded_fallbacks(results) if stranded_check else []
         if stranded:
             graph = graph.coupled(stranded)
