@@ -148,20 +148,25 @@ def sequential_calls(neighbours, plans, agents=None):  # type: ignore[no-untyped
 
 @settings(max_examples=100, deadline=None)
 @given(seed=st.integers(0, 100_000), m=st.integers(2, 9))
-def test_a_full_pass_rescues_only_on_the_retry_and_a_targeted_pass_on_every_call(seed, m):
-    """A first failure in a full pass is provisional (the agent is asked again at the end, and only
-    that last attempt may fly a rescue plan); every call of a targeted pass is final."""
+def test_a_full_pass_asks_each_failed_agent_once_more_after_every_first_attempt(seed, m):
+    """Every coupled agent is asked once, then each one whose call failed once more (after all
+    first attempts), then the neighbours around a final failure; every call may rescue."""
     rng = np.random.default_rng(seed)
     coupled = np.triu(rng.random((m, m)) < 0.5, 1)
     neighbours = [tuple(int(j) for j in np.flatnonzero(coupled[i] | coupled[:, i])) for i in range(m)]
     plans = [SimpleNamespace(own=rng.uniform(0, 1.0, (2, 3)), success=True) for _ in range(m)]
     calls = sequential_calls(neighbours, plans)
-    coupled_agents = sum(1 for n in neighbours if n)
-    assert sorted(agent for agent, _ in calls[:coupled_agents]) == [k for k in range(m) if neighbours[k]]
-    assert not any(rescue for _, rescue in calls[:coupled_agents])  # first attempts
-    assert all(rescue for _, rescue in calls[coupled_agents:])  # retries and re-plans around a failure
-    targeted = [k for k in range(m) if neighbours[k]][::-1]
-    assert all(rescue for _, rescue in sequential_calls(neighbours, plans, targeted))
+    coupled_agents = [k for k in range(m) if neighbours[k]]
+    assert [agent for agent, _ in calls[: len(coupled_agents)]] == coupled_agents[::-1]
+    assert all(rescue for _, rescue in calls)
+    recording = Agents(neighbours)  # replay the first attempts to know which failed
+    replay = list(plans)
+    failed = []
+    for agent in coupled_agents[::-1]:
+        replay[agent] = recording.answer(agent, replay)
+        if not replay[agent].success:
+            failed.append(agent)
+    assert [agent for agent, _ in calls[len(coupled_agents): len(coupled_agents) + len(failed)]] == failed
 
 
 def test_a_later_round_re_plans_only_the_agents_of_the_pairs_it_coupled():

@@ -281,9 +281,13 @@ class Repair:
         """Consensus repair: agents re-plan one after another against the others' current own
         plans (held fixed). Each agent respects the final plans of those before it and the plans
         those after it will respect, so every pair ends up feasible whenever the solves succeed.
-        An agent whose solve fails flies its fallback plan, which the agents after it respect; it
-        re-plans once more at the end, against everyone's final plans, since a plan that respects
-        all of them keeps every pair it is in feasible. If it still fails, its fallback is final,
+        An agent whose solve fails flies its fallback plan (rescued by the least-violating soft plan
+        when the fallback breaks the separation from a pinned plan), which the agents after it
+        respect; it re-plans once more at the end, against everyone's final plans, since a plan
+        that respects all of them keeps every pair it is in feasible. Rescuing already on the first
+        failure gives the agents after it a plan that moves on rather than one that brakes into a
+        neighbour: rescued only on the retry, swarms under a deadline took longer to their goals
+        (evidence: docs/lab/admm.md#repair-rounds). If the retry fails, its fallback is final,
         and the agents repaired before it never saw it: each neighbour whose plan comes within
         max(Delta_ij) + d_min of that fallback re-plans once more against every final plan
         (evidence: docs/lab/admm.md#spread-scaling-first); those re-plans ask consecutive
@@ -297,7 +301,6 @@ class Repair:
         the batch costs the step's critical path only its slowest re-plan."""
         repaired = list(results)
         neighbours = graph.neighbours
-        targeted = agents is not None  # a targeted pass's calls are all final
         if agents is None:
             agents = colour_order(neighbours) if self.requests.config.repair_order == "colour" else \
                 list(range(len(results)))[::-1]
@@ -305,9 +308,7 @@ class Repair:
         retried: set[int] = set()
         while pending:
             batch = independent_run(pending, neighbours)
-            # a first failure re-plans at the end (its fallback is provisional); the retry and the
-            # re-plan of a stranded fallback are final and may rescue
-            rescue = [targeted or i in retried for i in batch]
+            rescue = [True] * len(batch)  # every failed call may fly a rescue plan
             for i, answer in zip(batch, self._replan_all(batch, graph, z, rho, repaired, rescue), strict=True):
                 repaired[i] = answer
             for i in batch:
