@@ -536,7 +536,7 @@ class ADMMOptions(_Frozen):
     repair_rounds: int = Field(
         default=3, ge=1, le=100,
         description="Repair passes at most per step: after a pass, candidate pairs whose repaired plans conflict "
-        "are coupled and the pass runs again.",
+        "are coupled and their agents re-plan again.",
     )
     owner_weight: float = Field(
         default=5.0, gt=0,

@@ -36,7 +36,7 @@ class ADMMConfig:
     repair: bool = True
     repair_rounds: int = 3
     """Repair passes at most per step: after a pass, candidate pairs whose repaired plans conflict
-    are coupled and the pass runs again."""
+    are coupled and their agents re-plan again."""
     coupling_margin: float | None = 0.5
     closing_time: float = 0.0
     """Seconds of closing speed added to the coupling margin per pair: pairs whose guesses approach
