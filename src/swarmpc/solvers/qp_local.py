@@ -1214,8 +1214,7 @@ class QPLocalLadder:
             raise NotImplementedError(f"the QP local step cannot pin {unknown} (free copies and pair slacks only)")
         pinned = None
         if any(key.startswith("C") for key in fixed):
-            pinned = np.array([np.asarray(fixed[f"C{c}"], float) for c in range(copies)])
-            pinned = pinned.reshape(copies, self.settings.dim, self.settings.num_constrained)
+            pinned = self._pinned(fixed, copies)
         caps = {c: float(np.max(fixed[f"A{c}"])) for c in range(copies)
                 if f"A{c}" in fixed and self.pair_collision == "soft"}
         with self._lock:
@@ -1244,11 +1243,15 @@ class QPLocalLadder:
     ) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
         """:meth:`SequentialLocalQP.verified` of the plan in ``point`` (X, U) against the copies
         ``fixed`` pins (``C{c}``), by the pinned shape's step."""
-        pinned = np.array([np.asarray(fixed[f"C{c}"], float) for c in range(copies)])
-        pinned = pinned.reshape(copies, self.settings.dim, self.settings.num_constrained)
+        pinned = self._pinned(fixed, copies)
         with self._lock:
             stepper = self.stepper(LocalShape(copies, planes, True, self.pair_collision))
             return stepper.verified(params, point["X"], point["U"], pinned)
+
+    def _pinned(self, fixed: dict[str, Any], copies: int) -> np.ndarray:
+        """The copies' positions (n, d, K) that ``fixed`` pins (``C{c}``)."""
+        pinned = np.array([np.asarray(fixed[f"C{c}"], float) for c in range(copies)])
+        return pinned.reshape(copies, self.settings.dim, self.settings.num_constrained)
 
     def guess_blocks(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, *, copies: int, planes: int = 0,
