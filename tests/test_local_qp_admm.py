@@ -339,6 +339,32 @@ def test_a_failed_qp_call_is_answered_by_ipopt_and_the_next_starts_from_it():
     np.testing.assert_allclose(back.x["X"], first.x["X"], atol=1e-4)
 
 
+def test_an_iteration_call_takes_iteration_rounds_and_a_repair_call_max_rounds():
+    """Agent 0 head-on, guessed 0.6 m off the line and its copy as far the other way: the
+    certificate loop needs three rounds from there. An ADMM iteration's call stops after
+    ``iteration_rounds`` with a safe but inexact plan (its cost above the loop's optimum); a
+    repair call (the copy pinned) runs to ``max_rounds``; the next iteration's call, started
+    from the first answer, reaches the optimum."""
+    s, params, guess = head_on_problem()
+    first = s.first_constrained_step
+    guess = {**guess, "C0": params["Z0"] - np.array([[0.0], [0.6]])}
+    guess["X"] = guess["X"].copy()
+    guess["X"][:2, first:] = params["Z"] + np.array([[0.0], [0.6]])
+    ipopt = LocalSolverLadder(s, 3, False)
+    ladder = QPLocalSolverLadder(QPLocalLadder(s, options=QPLocalOptions(iteration_rounds=1, max_rounds=20)), ipopt)
+    full = QPLocalSolverLadder(QPLocalLadder(s, options=QPLocalOptions(iteration_rounds=20, max_rounds=20)), ipopt)
+    inexact, optimum = ladder.solve(params, guess, copies=1), full.solve(params, guess, copies=1)
+    record = ladder.qp.stepper(LocalShape(1)).last_record
+    assert inexact.success and record.rounds == 1 and not record.converged
+    assert full.qp.stepper(LocalShape(1)).last_record.rounds > 1
+    assert inexact.cost > optimum.cost + 1.0
+    repair = ladder.solve(params, guess, {"C0": guess["C0"]}, copies=1)
+    assert repair.success and ladder.qp.stepper(LocalShape(1, pinned=True)).last_record.rounds == 3
+    onwards = ladder.solve(params, inexact.x_vec, copies=1)
+    assert ladder.qp.stepper(LocalShape(1)).last_record.rounds == 1
+    assert abs(onwards.cost - optimum.cost) < abs(inexact.cost - optimum.cost)
+
+
 def test_the_agents_count_fallbacks_in_closed_loop():
     """With a QP path that fails every call, IPOPT answers every local step and the agents count
     each one; the run goes on as on the IPOPT path."""

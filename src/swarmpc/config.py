@@ -618,8 +618,14 @@ class QPOptions(_Frozen):
     )
     max_rounds: int = Field(
         default=5, ge=1, le=MAX_LOCAL_ITERATIONS,
-        description="Certificate rounds (QPs) per local step; every round's plan is safe, so a capped loop is "
-        "an inexact but safe step.",
+        description="Certificate rounds (QPs) per local step at most (a repair call's; a car's QP step's "
+        "trust-region rounds); every round's plan is safe, so a capped loop is an inexact but safe step.",
+    )
+    iteration_rounds: int = Field(
+        default=2, ge=1, le=MAX_LOCAL_ITERATIONS,
+        description="Certificate rounds per local step of an ADMM iteration (copies free), at most `max_rounds`: "
+        "the next iteration starts from the plan and certificates of this one, so the iterations carry the "
+        "loop on; a repair call, whose plan is flown, may take `max_rounds`.",
     )
     plan_tol: float = Field(
         default=1e-6, ge=0, description="The certificate loop stops when the QP's plan moved less than this [m]."

@@ -129,8 +129,13 @@ class QPLocalOptions:
     tolerance (~eps_abs + eps_rel * |row| when polishing fails), so d_min itself is never eaten."""
     max_rounds: int = 5
     """Certificate rounds per call. Each round's plan is safe, so a capped loop is an inexact but
-    safe local step that the next ADMM iteration continues (its guess carries the certificates);
-    a few rounds settle the certificates of most calls, so a higher cap buys little."""
+    safe local step; a few rounds settle the certificates of most calls, so a higher cap buys
+    little."""
+    iteration_rounds: int = 2
+    """Certificate rounds per call of an ADMM iteration (copies free), at most ``max_rounds``: the
+    next iteration's call starts from this one's plan and certificates, so the iterations carry
+    the certificate loop on, and a call need not settle it (a repair call, whose answer is flown,
+    may take ``max_rounds``)."""
     plan_tol: float = 1e-6
     """[m] stop when the QP's answer moved less than this from its start."""
     certificate_tol: float = 1e-6
@@ -963,11 +968,13 @@ class SequentialLocalQP:
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, pinned: np.ndarray | None = None,
         slack_caps: dict[int, float] | None = None, y: np.ndarray | None = None, restarts: bool = True,
+        rounds: int | None = None,
     ) -> NLPSolution:
         """The local step from ``guess`` (blocks or a vector of this layout); ``pinned`` (n, d, K):
         the copies' fixed positions; ``slack_caps``: pair slot -> upper bound of its slack;
         ``y``: the QP duals of a previous solve of this shape (warm start); ``restarts`` False: a
-        failed first loop is the answer (a caller that has a cheaper way out than two more loops).
+        failed first loop is the answer (a caller that has a cheaper way out than two more loops);
+        ``rounds``: certificate rounds per loop at most (None: ``max_rounds``).
 
         If the first QP is infeasible (the guess's certificates ask for a separation the
         dynamics cannot reach, e.g. a guess that cuts through a pinned neighbour's plan), the
@@ -980,7 +987,8 @@ class SequentialLocalQP:
         delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
         x, lin = self._start(guess, delta, pinned)
         tally: list[Any] = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
-        answer, x, lin, converged = self._loop(params, x, lin, y, pinned, slack_caps, delta, tally)
+        cap = self.options.max_rounds if rounds is None else min(rounds, self.options.max_rounds)
+        answer, x, lin, converged = self._loop(params, x, lin, y, (pinned, slack_caps), delta, tally, cap)
         proven = (not answer.solved and self.proof is not None and pinned is not None
                   and self.proof.infeasible(params["x0"], pinned, delta))
         restart = restarts and not answer.solved and tally[0] == 1 and not proven  # none help a proven call
@@ -989,7 +997,7 @@ class SequentialLocalQP:
             start = x.copy()
             start[self.problem.layout.X] = plan
             lin = self.certify(*self.positions(start, pinned), delta)
-            answer, x, lin, converged = self._loop(params, start, lin, None, pinned, slack_caps, delta, tally)
+            answer, x, lin, converged = self._loop(params, start, lin, None, (pinned, slack_caps), delta, tally, cap)
             if answer.solved:
                 break
         if restart and not answer.solved:
@@ -1016,12 +1024,14 @@ class SequentialLocalQP:
 
     def _loop(
         self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray | None,
-        pinned: np.ndarray | None, slack_caps: dict[int, float] | None, delta: np.ndarray, tally: list[Any],
+        fixed: tuple[np.ndarray | None, dict[int, float] | None], delta: np.ndarray, tally: list[Any], rounds: int,
     ) -> tuple[QPAnswer, np.ndarray, Linearisation, bool]:
-        """The certificate loop from (x, lin): (last answer, plan, its best certificates, converged)."""
+        """The certificate loop from (x, lin), ``rounds`` at most, with ``fixed`` = (pinned copies,
+        slack caps): (last answer, plan, its best certificates, converged)."""
+        pinned, slack_caps = fixed
         converged = False
         q = self.problem.linear_cost(params)
-        for _ in range(self.options.max_rounds):
+        for _ in range(rounds):
             answer = self.qp.solve(params, lin, x, y, pinned, slack_caps, q)
             tally[0] += 1
             tally[1] += answer.iterations
@@ -1204,10 +1214,10 @@ class QPLocalLadder:
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
         *, copies: int, planes: int = 0, duals: tuple[np.ndarray, np.ndarray] | None = None,
-        restarts: bool = True,
+        restarts: bool = True, rounds: int | None = None,
     ) -> NLPSolution:
         """One local step; see the class docstring for ``fixed`` and ``duals``, and
-        :meth:`SequentialLocalQP.solve` for ``restarts``."""
+        :meth:`SequentialLocalQP.solve` for ``restarts`` and ``rounds``."""
         fixed = fixed or {}
         unknown = [key for key in fixed if key[:1] not in ("C", "A") or not key[1:].isdigit()]
         if unknown:
@@ -1223,7 +1233,7 @@ class QPLocalLadder:
             if isinstance(guess, np.ndarray) and guess.size != stepper.vector_size:
                 guess = self._layout_of(shape, guess).blocks_of(guess, params)
             y = duals[1] if duals is not None and duals[1].size == stepper.problem.A.shape[0] else None
-            return stepper.solve(params, guess, pinned, caps, y, restarts=restarts)
+            return stepper.solve(params, guess, pinned, caps, y, restarts=restarts, rounds=rounds)
 
     def _layout_of(self, shape: LocalShape, vector: np.ndarray) -> SequentialLocalQP:
         """The built step whose solution vectors ``vector`` is laid out for: ``shape``'s, or that

@@ -151,8 +151,12 @@ class QPLocalSolverLadder:
     ) -> NLPSolution:
         """The QP path's answer if it succeeds or proves the problem infeasible, else IPOPT's
         (:class:`FallbackSolution`); with ``handover`` False the QP path's answer, failed or not.
-        ``restarts``: see :meth:`swarmpc.solvers.qp_local.SequentialLocalQP.solve`."""
-        answer = self.qp.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals, restarts=restarts)
+        ``restarts``: see :meth:`swarmpc.solvers.qp_local.SequentialLocalQP.solve`. A call of an
+        ADMM iteration (copies free) takes ``iteration_rounds`` certificate rounds at most, a
+        repair call (copies pinned) ``max_rounds``."""
+        rounds = None if pins_copies(fixed) else self.qp.options.iteration_rounds
+        answer = self.qp.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals, restarts=restarts,
+                               rounds=rounds)
         if answer.success or answer.status == PROVEN_INFEASIBLE or not handover:
             return answer
         pinned = pins_copies(fixed)
