@@ -13,7 +13,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarmpc.solvers.admm.repair import Repair, colour_order, independent_run
+from swarmpc.solvers.admm.repair import LevelSchedule, Repair, colour_order, independent_run
 
 
 @st.composite
@@ -146,27 +146,75 @@ def sequential_calls(neighbours, plans, agents=None):  # type: ignore[no-untyped
     return recording.calls
 
 
-@settings(max_examples=100, deadline=None)
-@given(seed=st.integers(0, 100_000), m=st.integers(2, 9))
-def test_a_full_pass_asks_each_failed_agent_once_more_after_every_first_attempt(seed, m):
-    """Every coupled agent is asked once, then each one whose call failed once more (after all
-    first attempts), then the neighbours around a final failure; every call may rescue."""
+def one_by_one(neighbours, plans, order):  # type: ignore[no-untyped-def]
+    """The repair pass's first attempts and retries asked one agent after another (the loop the
+    batches stand in for): (plans, agents in the order asked)."""
+    agents, plans, asked = Agents(neighbours), list(plans), []
+    queue, retried = deque(i for i in order if neighbours[i]), set()
+    while queue:
+        i = queue.popleft()
+        asked.append(i)
+        plans[i] = agents.answer(i, plans)
+        if not plans[i].success and i not in retried:
+            retried.add(i)
+            queue.append(i)
+    return plans, asked
+
+
+def pass_with_stand_ins(neighbours, plans, order):  # type: ignore[no-untyped-def]
+    """The repair pass (``Repair.sequential``) over ``plans`` with the stand-in agents, without the
+    re-plans around final failures (checked on their own above): (plans, the batches asked)."""
+    m = len(neighbours)
+    recording = Recording(neighbours)
+    repair = Repair.__new__(Repair)
+    repair.requests = SimpleNamespace(config=SimpleNamespace(repair_order="index"))
+    repair.safety = SimpleNamespace(settings=SimpleNamespace(d_min=0.05), largest_delta=np.full((m, m), 0.3))
+    repair._replan_all = recording.replan_all  # type: ignore[method-assign]
+    repair._replan_around = lambda *args: None  # type: ignore[method-assign]
+    repaired = repair.sequential(SimpleNamespace(neighbours=neighbours), None, 0.0, list(plans), order)
+    assert all(rescue for _, rescue in recording.calls)  # every call may rescue
+    return repaired, recording.batches
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 100_000), m=st.integers(2, 12), density=st.sampled_from([0.2, 0.5, 0.8]))
+def test_the_pass_asked_level_by_level_gives_the_one_by_one_answers(seed, m, density):
+    """Every coupled agent is asked once and each one whose call failed once more after all first
+    attempts; the batches are levels of uncoupled agents whose answers are exactly those of asking
+    the agents one after another, in no more batches than the runs of uncoupled agents need."""
     rng = np.random.default_rng(seed)
-    coupled = np.triu(rng.random((m, m)) < 0.5, 1)
+    coupled = np.triu(rng.random((m, m)) < density, 1)
     neighbours = [tuple(int(j) for j in np.flatnonzero(coupled[i] | coupled[:, i])) for i in range(m)]
     plans = [SimpleNamespace(own=rng.uniform(0, 1.0, (2, 3)), success=True) for _ in range(m)]
-    calls = sequential_calls(neighbours, plans)
-    coupled_agents = [k for k in range(m) if neighbours[k]]
-    assert [agent for agent, _ in calls[: len(coupled_agents)]] == coupled_agents[::-1]
-    assert all(rescue for _, rescue in calls)
-    recording = Agents(neighbours)  # replay the first attempts to know which failed
-    replay = list(plans)
-    failed = []
-    for agent in coupled_agents[::-1]:
-        replay[agent] = recording.answer(agent, replay)
-        if not replay[agent].success:
-            failed.append(agent)
-    assert [agent for agent, _ in calls[len(coupled_agents): len(coupled_agents) + len(failed)]] == failed
+    order = [int(i) for i in rng.permutation(m)]
+    expected, asked = one_by_one(neighbours, plans, order)
+    repaired, batches = pass_with_stand_ins(neighbours, plans, order)
+    for a, b in zip(repaired, expected, strict=True):
+        np.testing.assert_array_equal(a.own, b.own)
+        assert a.success == b.success
+    assert sorted(a for batch in batches for a in batch) == sorted(asked)
+    assert all(not any(j in neighbours[i] for i in batch for j in batch) for batch in batches)
+    runs, pending = 0, deque(asked)
+    while pending:
+        independent_run(pending, neighbours)
+        runs += 1
+    assert len(batches) <= runs
+
+
+def test_two_coupled_pairs_take_two_levels_where_the_runs_take_three():
+    """Pairs 0-1 and 2-3 in the index order 3, 2, 1, 0: the runs are [3], [2, 1], [0]; each agent
+    waits only for its partner, so 3 and 1 go first and 2 and 0 after them."""
+    neighbours = [(1,), (0,), (3,), (2,)]
+    schedule = LevelSchedule(neighbours)
+    for i in (3, 2, 1, 0):
+        schedule.append(i)
+    assert schedule.pop() == [3, 1]
+    schedule.append(3)  # a retry of 3, queued after everything: after its partner 2
+    assert schedule.pop() == [2, 0]
+    assert schedule.pop() == [3]
+    assert schedule.pop() == []
+    pending = deque([3, 2, 1, 0])
+    assert [independent_run(pending, neighbours) for _ in range(3)] == [[3], [2, 1], [0]]
 
 
 def test_a_later_round_re_plans_only_the_agents_of_the_pairs_it_coupled():
