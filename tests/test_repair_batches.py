@@ -134,18 +134,6 @@ class Recording(Agents):
         return super().replan_all(agents, graph, z, rho, plans, rescue, quick)
 
 
-def sequential_calls(neighbours, plans, agents=None):  # type: ignore[no-untyped-def]
-    """The (agent, rescue) calls of one repair pass over ``plans`` with the stand-in agents."""
-    m = len(neighbours)
-    recording = Recording(neighbours)
-    repair = Repair.__new__(Repair)
-    repair.requests = SimpleNamespace(config=SimpleNamespace(repair_order="index"))
-    repair.safety = SimpleNamespace(settings=SimpleNamespace(d_min=0.05), largest_delta=np.full((m, m), 0.3))
-    repair._replan_all = recording.replan_all  # type: ignore[method-assign]
-    repair.sequential(SimpleNamespace(neighbours=neighbours), None, 0.0, list(plans), agents)
-    return recording.calls
-
-
 def one_by_one(neighbours, plans, order):  # type: ignore[no-untyped-def]
     """The repair pass's first attempts and retries asked one agent after another (the loop the
     batches stand in for): (plans, agents in the order asked)."""
