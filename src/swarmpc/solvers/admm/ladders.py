@@ -154,12 +154,12 @@ class QPLocalSolverLadder:
         ``restarts``: see :meth:`swarmpc.solvers.qp_local.SequentialLocalQP.solve`. A call of an
         ADMM iteration (copies free) takes ``iteration_rounds`` certificate rounds at most, a
         repair call (copies pinned) ``max_rounds``."""
-        rounds = None if pins_copies(fixed) else self.qp.options.iteration_rounds
+        pinned = pins_copies(fixed)
+        rounds = None if pinned else self.qp.options.iteration_rounds
         answer = self.qp.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals, restarts=restarts,
                                rounds=rounds)
         if answer.success or answer.status == PROVEN_INFEASIBLE or not handover:
             return answer
-        pinned = pins_copies(fixed)
         start = self.qp.guess_blocks(params, guess, copies=copies, planes=planes, pinned=pinned)
         reference = self.ipopt.solve(params, start, fixed, copies=copies, planes=planes)
         values = {f.name: getattr(reference, f.name) for f in fields(NLPSolution)}

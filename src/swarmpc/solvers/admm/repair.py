@@ -417,9 +417,9 @@ class LevelSchedule:
     re-plans of its neighbours and of itself, and nothing else: its level is one more than the
     highest level among those (0 without any). The levels are asked in turn, each in one batch in
     the sequence's order. Its batches are never more than the runs of mutually uncoupled agents
-    (:func:`independent_run`) of the same sequence, which wait for every earlier re-plan: at
-    M = 64 a crowded step's pass asked 40-54 runs one after another. An agent appended after some
-    levels were asked (a retry) goes after the re-plans appended before it, at a level not yet asked.
+    (:func:`independent_run`) of the same sequence, which wait for every earlier re-plan. An
+    agent appended after some levels were asked (a retry) goes after the re-plans appended before
+    it, at a level not yet asked.
     """
 
     def __init__(self, neighbours: Sequence[Sequence[int]]) -> None:
