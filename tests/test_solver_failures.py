@@ -217,3 +217,47 @@ def test_admm_capped_before_consensus_is_repaired_and_stays_safe(tmp_path):
         unrepaired.close()
     assert without.summary["admm_repairs"] == 0
     assert recount_collisions(without.states, scn.delta_vector)[0] > 0
+
+
+def test_a_failed_repair_falls_back_to_the_plan_applied_at_the_last_step_shifted():
+    """A repair's request carries the agent's committed plan (the plan the last step applied): when
+    every solve fails, the agent flies it shifted by one step (every pair of applied plans was
+    checked apart, so two agents that both fail stay apart but for the appended last step), not a
+    braking plan from the measured state, which no neighbour's plan was checked against."""
+    from types import MappingProxyType
+
+    from swarmpc.model.dynamics import DoubleIntegrator
+    from swarmpc.solvers.admm.graph import CouplingGraph
+    from swarmpc.solvers.admm.messages import StepRequests
+    from swarmpc.solvers.base import braking_plan, fallback_plan
+
+    scn = scenario_from_dict({**CROSSING, "agents": CROSSING["agents"][:2]})
+    s, bodies = OCPSettings.from_scenario(scn), planner_bodies(scn)
+    config = ADMMConfig.from_options(scn.solver, scn.collision)
+    factory = LocalAgentFactory.for_config(s, bodies, config)
+
+    def failing_agent() -> LocalAgent:
+        real = factory(0)
+        ladder = _FlakyLadder(real.nlp)
+        ladder.failing = True
+        return LocalAgent(0, real.settings, ladder, real.dynamic_copies, real.seed_duals, None)
+
+    model = DoubleIntegrator(2, scn.dt, "euler")
+    last = np.array([[-1.0, 0.1, 0.8, 0.0], [0.1, -1.0, 0.0, 0.8]])  # the states the last step started from
+    inputs = np.stack([np.tile([[-0.3, 0.1]], (s.horizon, 1)), np.tile([[0.1, -0.3]], (s.horizon, 1))])
+    applied = np.stack([model.rollout(last[k], inputs[k]) for k in range(2)])
+    states = applied[:, 1]  # measured exactly where the applied plans said
+    graph = CouplingGraph(~np.eye(2, dtype=bool), ((1,), (0,)), (MappingProxyType({}), MappingProxyType({})))
+    requests = StepRequests(s, config, bodies, states, states, applied, (applied, inputs))
+    z = np.transpose(model.position(applied[:, s.first_constrained_step:]), (0, 2, 1)).copy()
+    request = requests.request(0, graph, z, config.rho, config.rho, False, (applied[[1]], inputs[[1]]))
+    assert request.committed is not None and np.array_equal(request.committed[0], applied[0])
+
+    answer = failing_agent().solve(request)
+    assert answer.fallback and not answer.success
+    shifted, shifted_inputs = fallback_plan(states[0], applied[0], inputs[0], s)
+    assert np.allclose(shifted[:-1], applied[0, 1:]) and np.array_equal(answer.states, shifted)
+    assert np.array_equal(answer.inputs, shifted_inputs)
+
+    no_plan = dataclasses.replace(request, committed=None)  # none applied yet: brake
+    assert np.allclose(failing_agent().solve(no_plan).states, braking_plan(states[0], s)[0])

@@ -184,7 +184,7 @@ class ADMMSolver:
         self._clock = StepClock(self.config.deadline, reserve=self._reserve())
         self._local_fallbacks = 0
         cfg, s = self.config, self.settings
-        requests = StepRequests(s, cfg, self.bodies, states, goals, guess)
+        requests = StepRequests(s, cfg, self.bodies, states, goals, guess, self._applied)
         graph = CouplingGraph.build(states, guess, goals, s, self.bodies, cfg)
         z = starting_consensus(s.model.position(guess[:, s.first_constrained_step:]), self.carryover)
         run = self._iterate(requests, graph, z)
