@@ -74,6 +74,22 @@ class SafetyChecks:
         outside = box_exterior_distance(own[first] - own[second], half, axis=1)
         return np.all(outside >= 0.5 * self.settings.d_min, axis=1)
 
+    def first_close_steps(self, results: Sequence[LocalResult], agents: Sequence[int]) -> tuple[int, float]:
+        """How close ``agents``' own plans come to every other plan: the first constrained step at
+        which some pair of one of them with any other agent keeps less than d_min / 2 (the margin of
+        :meth:`pairs_apart`; K when none does), and the shortfall from d_min / 2 summed over those
+        pairs and steps (negative signed distance counts as depth)."""
+        own = own_positions(results)
+        first = np.repeat(np.asarray(agents, int), len(results))
+        second = np.tile(np.arange(len(results)), len(agents))
+        keep = (first != second) & ~(np.isin(second, agents) & (second < first))  # each pair once
+        first, second = first[keep], second[keep]
+        half = self.pair_delta(first, second)[:, :, None]  # (n, d, 1)
+        signed = box_signed_distance(own[first] - own[second], half, axis=1)  # (n, K)
+        short = np.maximum(0.5 * self.settings.d_min - signed, 0.0)
+        close = np.flatnonzero(short.max(axis=0) > 0)
+        return (int(close[0]) if close.size else own.shape[2]), float(short.sum())
+
     def coupled_plans_clear(self, results: Sequence[LocalResult], neighbours: Sequence[tuple[int, ...]]) -> bool:
         """Every coupled pair's own plans keep half the OBCA separation (:meth:`pairs_apart`).
         Each agent keeps d_min from its copies, and consensus within ``tol`` (an RMS) bounds how
