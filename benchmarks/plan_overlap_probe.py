@@ -13,6 +13,7 @@ there is none whenever the solves succeed.
 from __future__ import annotations
 
 import argparse
+import json
 from typing import Any
 
 import numpy as np
@@ -36,8 +37,14 @@ def overlapping_pairs(
     return rows
 
 
-def probe(agents: int, seed: int, deadline: float | None) -> int:
-    """Fly the case, printing the overlapping pairs step by step; returns how many were found."""
+SUMMARY_KEYS = ("collisions", "min_separation_ratio", "all_reached", "cost", "deadline_misses", "makespan_s")
+"""The run's ``summary.json`` entries the ``--json`` line carries."""
+
+
+def probe(agents: int, seed: int, deadline: float | None, as_json: bool = False) -> int:
+    """Fly the case, printing the overlapping pairs step by step (``as_json``: then one JSON line
+    with the pairs' steps of the horizon, the first constrained step among them, and the run's
+    :data:`SUMMARY_KEYS`); returns how many were found."""
     from swarmpc.bench import BenchCase
     from swarmpc.simulation.loop import simulate
     from swarmpc.solvers.admm import repair
@@ -62,6 +69,12 @@ def probe(agents: int, seed: int, deadline: float | None) -> int:
     finally:
         repair.Repair.make_safe = original  # type: ignore[method-assign]
     print(f"{len(result.records)} steps, {len(found)} overlapping pairs after the safety passes")
+    if as_json:
+        line = {"seed": seed, "agents": agents, "deadline": deadline, "steps": len(result.records),
+                "overlaps": len(found), "overlap_steps": [row["step"] for row in found],
+                "pairs": sorted({row["pair"] for row in found}),
+                **{key: result.summary.get(key) for key in SUMMARY_KEYS}}
+        print(json.dumps(line), flush=True)
     return len(found)
 
 
@@ -70,8 +83,9 @@ def main() -> None:
     parser.add_argument("--agents", type=int, default=64)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--deadline", type=float, default=None, help="solver.deadline [s]; none by default")
+    parser.add_argument("--json", action="store_true", help="end with a JSON line: overlaps and summary")
     args = parser.parse_args()
-    probe(args.agents, args.seed, args.deadline)
+    probe(args.agents, args.seed, args.deadline, args.json)
 
 
 if __name__ == "__main__":

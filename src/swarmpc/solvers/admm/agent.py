@@ -391,12 +391,9 @@ class LocalAgent:
         self, request: LocalRequest, params: dict[str, Any], failed: NLPSolution,
     ) -> tuple[np.ndarray, np.ndarray, NLPSolution]:
         """(states, inputs) of the fallback plan after ``failed``, rescued in a repair's last
-        attempt when it breaks the separation (``failed`` then also counts the rescue's time).
-        The plan it falls back from is a repair's committed plan (``request.committed``), else the
-        agent's last plan (at a new step, its answer of the last step)."""
-        previous = request.committed if request.committed is not None else self._plan
-        last_states, last_inputs = previous if previous is not None else (None, None)
-        states, inputs = fallback_plan(request.state, last_states, last_inputs, self.settings)
+        attempt when it breaks the separation (``failed`` then also counts the rescue's time)."""
+        previous = self._plan if self._plan is not None else (None, None)
+        states, inputs = fallback_plan(request.state, previous[0], previous[1], self.settings)
         pinned = self._pinned_copies(request)
         if pinned is not None and request.rescue:
             rescued, rescue_time = self._rescue(request, params, pinned, states)

@@ -67,12 +67,6 @@ class LocalRequest:
     False under a deadline: an IPOPT call takes tens to hundreds of ms, more than a step's budget,
     so a failed QP call is a failed local step, answered by the agent's rules for one (last plan
     within a step, a verified current plan or the fallback in a repair)."""
-    committed: tuple[np.ndarray, np.ndarray] | None = None
-    """A repair's: the plan applied for this agent at the last step, states (N+1, n) and inputs
-    (N, m) (None: none yet). A failed repair falls back to it shifted by one step
-    (:func:`~swarmpc.solvers.base.fallback_plan`): every pair of plans applied at the last step was
-    checked apart, so two agents that both fail fly plans that stay apart at every step but the
-    appended last one; braking plans from the measured states carry no such guarantee."""
 
     @property
     def num_planes(self) -> int:
@@ -144,7 +138,7 @@ class StepRequests:
     guess: np.ndarray
     applied: tuple[np.ndarray, np.ndarray] | None = None
     """States (M, N+1, n) and inputs (M, N, m) of the plans the last step applied (None: none
-    yet): a repair's request carries the agent's as its ``committed`` plan."""
+    yet): the committed plans of :meth:`~swarmpc.solvers.admm.repair.Repair.settle`."""
 
     def request(
         self, i: int, graph: CouplingGraph, z: np.ndarray, rho: float, rho_previous: float, new_step: bool,
@@ -184,5 +178,4 @@ class StepRequests:
             plane_normals=normals,
             plane_offsets=offsets,
             handover=self.config.deadline is None,
-            committed=None if plans is None or self.applied is None else (self.applied[0][i], self.applied[1][i]),
         )
