@@ -81,3 +81,29 @@ def test_settling_never_brings_the_first_conflict_closer_and_moves_only_fallback
         assert np.allclose(settled[k].own, S.model.position(settled[k].states[S.first_constrained_step:]).T)
     if fell:
         assert safety.first_close_steps(settled, fell)[0] >= safety.first_close_steps(plans, fell)[0]
+
+
+def test_the_safety_passes_end_by_settling_agents_whose_every_re_plan_fails():
+    """Through ``Repair.make_safe``: agents 0 and 1, coupled and head on, answer every re-plan with
+    a fallback that coasts into the other; the passes still end with both braking, apart."""
+    from types import MappingProxyType
+
+    from swarmpc.solvers.admm.graph import CouplingGraph
+
+    states = np.array([[-0.6, 0.0, 1.0, 0.0], [0.6, 0.0, -1.0, 0.0], [0.0, 3.0, 0.0, 0.0]])
+    safety = SafetyChecks(S, BODIES)
+    requests = StepRequests(S, ADMMConfig(), BODIES, states, states, np.zeros((M, S.horizon + 1, 2 * S.dim)))
+    asked: list[int] = []
+
+    def solve(batch):  # type: ignore[no-untyped-def]
+        asked.extend(r.agent for r in batch)
+        return [coasting(states[r.agent], r.agent, fallback=True) for r in batch]
+
+    graph = CouplingGraph(~np.eye(M, dtype=bool), ((1,), (0,), ()), tuple(MappingProxyType({}) for _ in range(M)))
+    plans = [coasting(states[k], k, fallback=False) for k in range(M)]
+    z = np.array([p.own for p in plans])
+    safe = Repair(requests, safety, solve).make_safe(graph, z, 10.0, plans, repair_all=True, stranded_check=True)
+    assert {0, 1} <= set(asked)  # the passes did ask them
+    for k in (0, 1):
+        assert np.allclose(safe.results[k].states, braking_plan(states[k], S)[0])
+    assert safety.first_close_steps(safe.results, [0, 1]) == (S.num_constrained, 0.0)
