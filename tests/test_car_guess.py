@@ -23,6 +23,9 @@ from swarmpc.solvers.car_guess import car_guess, car_path, car_straight_guess  #
 CAR = KinematicCar(dim=2, dt=0.1)
 BOUNDS = (np.array([0.0, 0.0]), np.array([8.0, 6.0]))
 D_MIN = 0.1
+GUARD = 30.0
+"""[s] the time limit of searches expected to find a path: the planner's iterations end them (in
+well under a second on an idle core), the limit only guards, so a loaded machine cannot end them first."""
 START = np.array([1.0, 1.0, 0.0])
 GOAL = np.array([7.0, 1.0, 0.0])  # behind the wall
 BESIDE = np.array([1.0, 2.2, 0.0])  # one lane up, same heading, close to the left edge: a parking move
@@ -73,14 +76,14 @@ def assert_turning_limit(model: KinematicCar, path: np.ndarray) -> None:
 
 @pytest.fixture(scope="module")
 def gap_path() -> np.ndarray:
-    path = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=2.0)
+    path = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=GUARD)
     assert path is not None
     return path
 
 
 @pytest.mark.parametrize("prefer_forward", [True, False])
 def test_path_through_the_gap_is_clear_and_within_the_turning_limit(prefer_forward: bool) -> None:
-    path = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, 3, 2.0, prefer_forward)
+    path = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, 3, GUARD, prefer_forward)
     assert path is not None
     if prefer_forward:  # found forwards only
         assert np.all(directions(path) > 0)
@@ -102,7 +105,7 @@ def test_path_through_the_gap_is_clear_and_within_the_turning_limit(prefer_forwa
 
 
 def test_same_seed_same_path(gap_path: np.ndarray) -> None:
-    again = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=2.0)
+    again = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=GUARD)
     assert again is not None
     np.testing.assert_array_equal(again, gap_path)
 
@@ -124,8 +127,8 @@ def test_the_iterations_decide_which_attempt_finds_the_path(gap_path: np.ndarray
     # The forwards-only search through the gap needs about 100 iterations: with 40 it gives up,
     # and the path is the Reeds-Shepp attempt's, whatever the time limit.
     short = [car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=t, iterations=40)
-             for t in (2.0, 30.0)]
-    reeds_shepp = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=2.0,
+             for t in (GUARD, 2 * GUARD)]
+    reeds_shepp = car_path(CAR, START, GOAL, WALL_WITH_GAP, BOUNDS, D_MIN, seed=3, time_limit=GUARD,
                            prefer_forward=False, iterations=40)
     assert short[0] is not None and reeds_shepp is not None
     np.testing.assert_array_equal(short[0], short[1])
@@ -144,7 +147,7 @@ def test_invalid_endpoints_give_none_without_planning() -> None:
 @pytest.mark.parametrize("prefer_forward", [True, False])
 def test_parking_move_reverses(prefer_forward: bool) -> None:
     # Forwards only, the car would have to loop round with its body beyond the left edge.
-    path = car_path(CAR, START, BESIDE, [], BOUNDS, D_MIN, 1, 0.5, prefer_forward)
+    path = car_path(CAR, START, BESIDE, [], BOUNDS, D_MIN, 1, GUARD, prefer_forward)
     assert path is not None
     assert np.any(directions(path) < 0) and np.any(directions(path) > 0)
     assert np.min(clearance(CAR, path, [box([-1.0, -1.0], [0.0, 7.0])])) >= 0.0  # a wall as the left edge
@@ -155,7 +158,7 @@ def test_parking_move_reverses(prefer_forward: bool) -> None:
 def test_car_without_reverse_drives_forwards_only() -> None:
     forward_only = KinematicCar(dim=2, dt=0.1, max_reverse_speed=0.0)
     u_turn = np.array([1.5, 3.5, math.pi])
-    path = car_path(forward_only, START, u_turn, [], BOUNDS, D_MIN, 1, 1.0, prefer_forward=False)
+    path = car_path(forward_only, START, u_turn, [], BOUNDS, D_MIN, 1, GUARD, prefer_forward=False)
     assert path is not None
     assert np.all(directions(path) > 0)
     assert_turning_limit(forward_only, path)
@@ -188,7 +191,7 @@ def test_guess_along_the_gap_path_is_dynamically_plausible(gap_path: np.ndarray,
 
 
 def test_guess_with_cusps_reverses_and_stops_at_the_goal() -> None:
-    path = car_path(CAR, START, BESIDE, [], BOUNDS, D_MIN, 1, 0.5, prefer_forward=False)
+    path = car_path(CAR, START, BESIDE, [], BOUNDS, D_MIN, 1, GUARD, prefer_forward=False)
     assert path is not None
     states, inputs = car_guess(CAR, np.array([*START, 0.0]), BESIDE, path, horizon=120, dt=CAR.dt)
     assert_plausible(CAR, states, inputs, CAR.default_accel, math.inf)
