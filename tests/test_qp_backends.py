@@ -107,6 +107,25 @@ def test_an_equality_row_that_opens_is_taken_as_an_inequality():
     assert_same_answer(backends, P, q, A, lower2, upper2)
 
 
+def test_a_row_without_bounds_is_left_out_until_it_gets_one(capfd: pytest.CaptureFixture[str]) -> None:
+    """A row with neither bound (a free copy's position in a car's QP) does not reach PIQP, which
+    would zero it and say so on every set-up; bounded at a later call, it constrains again."""
+    P, q, A, lower, upper = random_qp(5, n=6, eq=1, ineq=6)
+    lower[3], upper[3] = -np.inf, np.inf
+    backends = both(P, q, A, lower, upper)
+    assert_same_answer(backends, P, q, A, lower, upper)
+    answer = backends[1].solve(np.zeros(6), None)
+    assert answer.y.shape == (7,) and answer.y[3] == 0.0
+    lower2, upper2 = lower.copy(), upper.copy()
+    upper2[3] = float((A @ answer.x)[3]) - 0.5  # a bound the last answer breaks
+    for b in backends:
+        b.update(q, lower2, upper2, None, None)
+    assert_same_answer(backends, P, q, A, lower2, upper2)
+    assert float((A @ backends[1].solve(np.zeros(6), None).x)[3]) <= upper2[3] + 1e-6
+    captured = capfd.readouterr()
+    assert "PIQP" not in captured.out + captured.err
+
+
 def test_an_infeasible_qp_is_reported_without_a_point():
     P = sp.csc_matrix(np.triu(np.eye(2)))
     A = sp.csc_matrix(np.array([[1.0, 0.0], [1.0, 0.0]]))

@@ -617,7 +617,9 @@ class PIQPBackend:
     infeasible; it cannot use a warm start, which OSQP turns into a few iterations on the ADMM
     iterations' slowly moving QPs. The rows whose bounds are equal at set-up (measured state,
     dynamics) are PIQP's equalities, the rest its two-sided inequalities; a later call that
-    opens an equality row sets the solver up again. The answer's multipliers are returned in
+    opens an equality row sets the solver up again. Rows without either bound (a free copy's
+    positions in a car's QP) are left out, as PIQP would zero them (and say so on every set-up);
+    a later call that bounds one sets the solver up again. The answer's multipliers are returned in
     OSQP's convention (one per row, positive at the upper bound) so either backend can start
     from them."""
 
@@ -625,6 +627,7 @@ class PIQPBackend:
         self.options = options
         self._solver: Any = None
         self._eq = self._ineq = np.zeros(0, int)
+        self._free = np.zeros(0, bool)
         self._P: sp.csc_matrix | None = None
         self._A: sp.csc_matrix | None = None
         self._parts: tuple[sp.csc_matrix, sp.csc_matrix, np.ndarray, np.ndarray] | None = None
@@ -634,7 +637,9 @@ class PIQPBackend:
         import piqp  # imported here: only this backend needs it
 
         self._P, self._A = P.copy(), A.copy()  # own copies: updates write their values in place
-        self._eq, self._ineq = np.flatnonzero(lower == upper), np.flatnonzero(lower != upper)
+        self._eq = np.flatnonzero(lower == upper)
+        self._free = np.isinf(lower) & np.isinf(upper)  # rows without a bound are left out
+        self._ineq = np.flatnonzero((lower != upper) & ~self._free)
         marker = sp.csc_matrix((np.arange(1, A.nnz + 1, dtype=float), A.indices, A.indptr), shape=A.shape)
         eq, ineq = marker[self._eq].tocsc(), marker[self._ineq].tocsc()
         self._parts = (eq, ineq, eq.data.astype(int) - 1, ineq.data.astype(int) - 1)
@@ -660,8 +665,9 @@ class PIQPBackend:
             self._P.data[:] = P_data
         if A_data is not None:
             self._A.data[:] = A_data
-        if np.any(lower[self._eq] != upper[self._eq]):  # an equality row opened: new row split
-            self.setup(self._P, q, self._A, lower, upper)
+        if np.any(lower[self._eq] != upper[self._eq]) or np.any(np.isfinite(lower[self._free]) |
+                                                               np.isfinite(upper[self._free])):
+            self.setup(self._P, q, self._A, lower, upper)  # an equality row opened or a free row closed
             return
         changes: dict[str, Any] = {"c": q, "b": lower[self._eq], "h_l": lower[self._ineq], "h_u": upper[self._ineq]}
         if P_data is not None:
@@ -674,7 +680,7 @@ class PIQPBackend:
         status = PIQP_STATUS.get(self._solver.solve().name, "unsolved")
         result, info = self._solver.result, self._solver.result.info
         time_spent = float(info.solve_time + info.update_time)
-        duals = np.zeros(len(self._eq) + len(self._ineq))
+        duals = np.zeros(len(self._free))  # one per row; rows left out have none
         if status != "solved":
             return QPAnswer(x, duals, False, status, int(info.iter), time_spent)
         duals[self._eq] = result.y
