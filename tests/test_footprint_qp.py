@@ -16,10 +16,11 @@ from test_footprint_ocp import D_MIN, GATE, car, point
 from swarmpc.formulation.footprint_local import NeighbourKind, build_footprint_local, consensus_block, slot_size
 from swarmpc.formulation.footprint_ocp import FootprintAgent
 from swarmpc.model.footprint import rectangle_distance, rectangle_polytope_distance
+from swarmpc.solvers import footprint_qp
 from swarmpc.solvers.footprint_admm import footprint_local_guess
 from swarmpc.solvers.footprint_central import straight_guess
 from swarmpc.solvers.footprint_qp import FootprintLocalQP, _turned, corner_offsets
-from swarmpc.solvers.qp_local import QPLocalOptions
+from swarmpc.solvers.qp_local import QPBackend, QPLocalOptions, qp_backend
 
 HORIZON = 15
 
@@ -35,7 +36,8 @@ def _params(own: FootprintAgent, others: list[FootprintAgent], guess: np.ndarray
 
 
 def _both(own: FootprintAgent, others: list[FootprintAgent], start: np.ndarray, goal: np.ndarray,
-          copies: list[np.ndarray], pinned: bool = False, owner_weight: float = 1.0):  # type: ignore[no-untyped-def]
+          copies: list[np.ndarray], pinned: bool = False, owner_weight: float = 1.0,
+          options: QPLocalOptions | None = None):  # type: ignore[no-untyped-def]
     """IPOPT's and the QP's answers to one local problem from the straight guess."""
     kinds = tuple(NeighbourKind.of(other) for other in others)
     guess = straight_guess(own, start, goal) if own.oriented else np.linspace(start, goal, HORIZON + 1)
@@ -43,8 +45,8 @@ def _both(own: FootprintAgent, others: list[FootprintAgent], start: np.ndarray, 
     fixed = {f"C{slot}": copy for slot, copy in enumerate(copies)} if pinned else None
     nlp = build_footprint_local(own, kinds, owner_weight=owner_weight).solve(
         params, footprint_local_guess(own, guess, others, copies), fixed=fixed)
-    qp = FootprintLocalQP(own, kinds, QPLocalOptions(max_rounds=50), owner_weight).solve(params, guess, None, copies,
-                                                                                         pinned)
+    options = options if options is not None else QPLocalOptions(max_rounds=50)
+    qp = FootprintLocalQP(own, kinds, options, owner_weight).solve(params, guess, None, copies, pinned)
     return nlp, qp
 
 
@@ -73,6 +75,35 @@ def test_a_car_passing_a_copy_reaches_the_nlp_optimum(owner_weight: float) -> No
     assert qp.cost == pytest.approx(nlp.cost, rel=1e-3)
     assert np.abs(qp.x["X"] - nlp.x["X"]).max() < 1e-2
     assert np.abs(qp.x["C0"] - nlp.x["C0"]).max() < 1e-2
+
+
+@pytest.mark.parametrize("pinned", [False, True])
+@pytest.mark.parametrize("solver", ["osqp", "piqp"])
+def test_either_qp_solver_reaches_the_nlp_optimum_and_prints_nothing(
+    solver: str, pinned: bool, capfd: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``solver.qp.solver`` (free copies) and ``solver.qp.repair_solver`` (pinned copies) choose the
+    QP solver of a car's calls: both reach IPOPT's optimum. A free copy's positions are rows
+    without bounds, which PIQP would zero with a message on every set-up: none is printed."""
+    built: list[str] = []
+
+    def spy(options: QPLocalOptions, pinned: bool = False) -> QPBackend:
+        backend = qp_backend(options, pinned)
+        built.append(type(backend).__name__)
+        return backend
+
+    monkeypatch.setattr(footprint_qp, "qp_backend", spy)
+    own, other = car(horizon=HORIZON), car(horizon=HORIZON)
+    parked = np.tile(np.array([[0.0], [0.55], [0.2]]), (1, HORIZON))
+    options = QPLocalOptions(max_rounds=50, solver=solver, repair_solver=solver)
+    nlp, qp = _both(own, [other], np.array([-2.0, 0.0, 0.0, 0.0]), np.array([2.0, 0.0, 0.0, 0.0]), [parked],
+                    pinned, options=options)
+    assert nlp.success and qp.success
+    assert qp.cost == pytest.approx(nlp.cost, rel=1e-3)
+    assert np.abs(qp.x["X"] - nlp.x["X"]).max() < 1e-2
+    assert built == [{"osqp": "OSQPBackend", "piqp": "PIQPBackend"}[solver]]
+    captured = capfd.readouterr()
+    assert "PIQP" not in captured.out + captured.err
 
 
 def test_a_point_agent_between_a_car_and_a_point_copy_reaches_the_nlp_optimum() -> None:

@@ -27,8 +27,10 @@ plan and repeats:
    held (its support along n). Point agents' boxes do not turn: their rows are exact. Every
    corner row has a slack priced at :data:`HARD_PENALTY` per metre (kappa in the soft form): an
    exact penalty, so a QP always has an answer, and a plan that keeps d_min pays nothing.
-4. **Rounds.** Solve the QP (OSQP, set up once per problem shape, matrix values and vectors
-   updated in place, warm-started from the last answer) inside a trust region (headings within
+4. **Rounds.** Solve the QP (set up once per problem shape and kind of call, matrix values and
+   vectors updated in place; OSQP, warm-started from the last answer, for the ADMM iterations'
+   calls, PIQP for the repairs' calls with pinned copies: ``solver.qp.solver`` and
+   ``solver.qp.repair_solver``, as for point agents) inside a trust region (headings within
    tau of the current plan's, inputs within the same share of their range), roll its inputs out,
    and keep the new plan only if it lowers the merit (:meth:`FootprintLocalQP.merit`: the NLP's
    objective plus the price of the separation it lacks, by the exact distances); otherwise shrink
@@ -75,10 +77,11 @@ from swarmpc.model.footprint import (
 from swarmpc.solvers.guesses import inputs_from_states
 from swarmpc.solvers.qp_local import (
     IndexCounter,
-    OSQPBackend,
     QPAnswer,
+    QPBackend,
     QPLocalOptions,
     TripletMatrix,
+    qp_backend,
     speed_polytope,
 )
 
@@ -269,10 +272,21 @@ class _Geometry:
         return s.kappa if s.collision == "soft" else HARD_PENALTY
 
 
+@dataclass
+class _Solver:
+    """One kind of call's QP solver: the backend, its last multipliers (a warm start) and the
+    penalty its P holds."""
+
+    backend: QPBackend
+    rho: float
+    y: np.ndarray | None = None
+
+
 class _RoundQP:
     """The QP of one round (module docstring, items 1-3): its sparsity pattern, built once; per
-    round the values of an expansion about a plan, and OSQP set up on the first round and updated
-    in place after. It keeps the normals it held (:func:`_steady`)."""
+    round the values of an expansion about a plan, and the QP solver of the kind of call (free or
+    pinned copies) set up on its first round and updated in place after. It keeps the normals it
+    held (:func:`_steady`)."""
 
     def __init__(self, geo: _Geometry, options: QPLocalOptions) -> None:
         own, s = geo.own, geo.own.settings
@@ -292,10 +306,9 @@ class _RoundQP:
         self.A = TripletMatrix(self.layout.size)
         self.P = TripletMatrix(self.layout.size)
         self._build_pattern()
-        self._backend = OSQPBackend(options)
-        self._ready = False
-        self._y: np.ndarray | None = None
-        self._rho: float | None = None
+        self._solvers: dict[bool, _Solver] = {}
+        """Per kind of call (copies pinned or free), its QP solver (``solver.qp.repair_solver`` or
+        ``solver.qp.solver``), set up on its first call."""
 
     # ---- pattern -------------------------------------------------------------------------------
     def _build_pattern(self) -> None:
@@ -416,21 +429,22 @@ class _RoundQP:
         P_values[self.rho_slots] = rho
         P_values[self.own_rho_slots] = rho * self.geo.owner_weight
         A_data, P_data = self.A.data(values), self.P.data(P_values)
-        if not self._ready:
-            self._backend.setup(_csc(self.P_matrix, P_data), q, _csc(self.A_matrix, A_data), lower, upper)
-            self._ready = True
+        solver = self._solvers.get(pinned)
+        if solver is None:
+            solver = self._solvers[pinned] = _Solver(qp_backend(self.options, pinned), rho)
+            solver.backend.setup(_csc(self.P_matrix, P_data), q, _csc(self.A_matrix, A_data), lower, upper)
         else:
-            self._backend.update(q, lower, upper, P_data if rho != self._rho else None, A_data)
-        self._rho = rho
+            solver.backend.update(q, lower, upper, P_data if rho != solver.rho else None, A_data)
+        solver.rho = rho
         start = np.zeros(lay.size)
         start[lay.X] = X.T
         start[lay.U] = U.T
         start[lay.pose] = consensus_block(self.own, X)
         for index, copy in zip(lay.copies, C, strict=True):
             start[index] = copy
-        answer = self._backend.solve(start, self._y)
+        answer = solver.backend.solve(start, solver.y)
         if answer.solved or answer.status.startswith("maximum iterations"):
-            self._y = answer.y
+            solver.y = answer.y
         return answer
 
     def _trajectory_values(
