@@ -155,13 +155,15 @@ def record(rows: list[dict[str, Any]], note: str, runs: list[str]) -> None:
                "rows": summarise(rows)}]
     if runs:
         closed = [run_row(label, Path(folder)) for label, folder in (spec.split("=", 1) for spec in runs)]
-        tables.append({"caption": "`mixed` by ADMM with the QP local step, the code before and after, flown at the "
-                                  "same time.", "columns": RUN_COLUMNS, "rows": closed})
+        tables.append({"caption": "`mixed` by ADMM with the QP local step; each pair of rows flown at the same time.",
+                       "columns": RUN_COLUMNS, "rows": closed})
     write_experiment(RECORD, {
         "id": "car-qp-solvers", "title": "The car QP local step on OSQP and on PIQP",
         "status": "shipped", "date": time.strftime("%Y-%m-%d"), "commit": None,
         "commands": [".venv/bin/python benchmarks/car_qp_solvers.py --reps 10 --out rows.json",
-                     "swarmpc run mixed --method admm --local qp  # with the code before, and after, at the same time"],
+                     "swarmpc run mixed --method admm --local qp  # with the code before, and after, at the same time",
+                     "swarmpc run MIXED.yaml  # mixed with solver.method admm, solver.local qp, solver.qp.solver piqp, "
+                     "at the same time as the code before"],
         "what": __doc__.split("\n\n")[1].replace("\n", " "), "tables": tables, "note": note,
     })
 
