@@ -66,6 +66,23 @@ def test_a_car_scenario_loads_with_poses_in_degrees_and_round_trips():
     assert again == scn and again.agents[1].model.length == 0.8
 
 
+def test_later_pair_copies_are_refused_for_a_swarm_of_point_agents(tmp_path: Path):
+    scn = builtin_scenario("swap-2d").with_updates(**{"solver.method": "admm"})
+    data = yaml.safe_load(scenario_to_yaml(scn))
+    data["solver"].setdefault("admm", {})["pair_copies"] = "later"
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    code, stderr = cli_in_process("run", str(path), "--out", str(out), "--quiet")
+    assert code == 2 and len(stderr.splitlines()) == 1 and stderr.startswith(PREFIX + "solver.admm.pair_copies: ")
+    assert not out.exists()
+
+
+def test_parking_by_admm_holds_each_pairs_copy_in_the_later_car_only():
+    assert builtin_scenario("parking").solver.admm.pair_copies == "later"
+    assert builtin_scenario("intersection").solver.admm.pair_copies == "both"
+
+
 def test_point_only_scenarios_are_written_without_a_model_key():
     scn = builtin_scenario("swap-2d")
     assert not scn.has_cars and "model" not in scenario_to_yaml(scn)

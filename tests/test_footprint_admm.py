@@ -104,10 +104,10 @@ def _plan_cost(swarm: FootprintSwarm, states: np.ndarray, inputs: np.ndarray) ->
     return total
 
 
-@pytest.mark.parametrize("local", ["ipopt", "qp"])
-def test_one_admm_step_matches_the_centralised_plan(local: str) -> None:
+@pytest.mark.parametrize("local,pair_copies", [("ipopt", "both"), ("qp", "both"), ("ipopt", "later")])
+def test_one_admm_step_matches_the_centralised_plan(local: str, pair_copies: str) -> None:
     swarm = swarm_of(car(horizon=15), car(horizon=15))
-    options = FootprintADMMOptions(max_iter=200, local=local)
+    options = FootprintADMMOptions(max_iter=200, local=local, pair_copies=pair_copies)
     admm_states, admm_inputs, _ = _first_step(FootprintADMMSolver(swarm, options), swarm)
     central_states, central_inputs, _ = _first_step(FootprintCentralSolver(swarm), swarm)
     assert plan_violations(swarm, list(admm_states)) == []
@@ -118,11 +118,13 @@ def test_one_admm_step_matches_the_centralised_plan(local: str) -> None:
     assert admm_cost <= 1.02 * central_cost
 
 
-@pytest.mark.parametrize("local", ["ipopt", "qp"])
-def test_a_step_cut_short_is_repaired_to_a_safe_plan(local: str) -> None:
-    """Two iterations do not agree; the repair still leaves no pair closer than d_min."""
+@pytest.mark.parametrize("local,pair_copies", [("ipopt", "both"), ("qp", "both"), ("ipopt", "later"),
+                                               ("qp", "later")])
+def test_a_step_cut_short_is_repaired_to_a_safe_plan(local: str, pair_copies: str) -> None:
+    """Two iterations do not agree; the repair still leaves no pair closer than d_min (with
+    ``pair_copies`` "later" the earlier car holds no copy, and its repair is asked against both)."""
     swarm = swarm_of(car(horizon=15), car(horizon=15))
-    step = FootprintADMMSolver(swarm, FootprintADMMOptions(max_iter=2, local=local))
+    step = FootprintADMMSolver(swarm, FootprintADMMOptions(max_iter=2, local=local, pair_copies=pair_copies))
     starts, goals = (np.array(x, float) for x in HEAD_ON)
     result = step.plan(list(starts), list(goals), [straight_guess(a, starts[i], goals[i])
                                                    for i, a in enumerate(swarm.agents)])
@@ -177,6 +179,19 @@ def test_multipliers_carried_to_a_new_step_keep_summing_to_zero_per_block() -> N
     assert max(_block_sums(solver)) < 1e-9
     carried = solver._agents[0]
     assert carried is not None and carried.neighbours == (1,) and 1 not in carried.copy_y
+
+
+def test_with_later_pair_copies_only_the_later_car_of_a_pair_holds_a_copy() -> None:
+    """Three cars in a row, 0-1 and 1-2 coupled: with ``pair_copies`` "later" car 0 holds no copy,
+    car 1 a copy of car 0 and car 2 one of car 1; each block's multipliers still sum to zero (the
+    consensus of a block is the weighted mean of its holders, the copy included)."""
+    swarm = swarm_of(car(horizon=6), car(horizon=6), car(horizon=6))
+    states = np.array([[-2.2, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [2.2, 0.0, 0.0, 0.0]])
+    goals = states + np.array([0.5, 0.0, 0.0, 0.0])
+    solver = FootprintADMMSolver(swarm, FootprintADMMOptions(max_iter=5, pair_copies="later"))
+    solver.plan(list(states), list(goals), [straight_guess(a, states[i], goals[i]) for i, a in enumerate(swarm.agents)])
+    assert [state.neighbours for state in solver._agents if state is not None] == [(), (0,), (1,)]
+    assert max(_block_sums(solver)) < 1e-9
 
 
 def test_owner_weighted_consensus_leans_to_the_owner_and_keeps_multipliers_summing_to_zero() -> None:

@@ -30,6 +30,7 @@ from swarmpc.config import (
 )
 from swarmpc.docgen import schema_fields
 from swarmpc.formulation.ocp import IPOPT_OPTIONS, LOCAL_IPOPT_OPTIONS, OCPSettings, ipopt_options
+from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation import controller as controller_module
 from swarmpc.simulation.controller import Controller
 from swarmpc.simulation.deadlock import DeadlockResolver
@@ -38,6 +39,7 @@ from swarmpc.simulation.loop import simulate
 from swarmpc.solvers.admm import ADMMConfig, ADMMSolver
 from swarmpc.solvers.centralized import CentralizedSolver
 from swarmpc.solvers.executors import ProcessExecutor, SerialExecutor, ThreadExecutor
+from swarmpc.solvers.footprint_admm import FootprintADMMOptions
 from swarmpc.solvers.qp_local import QPLocalOptions
 from swarmpc.solvers.registry import SOLVERS, SolverRegistry, build_solver
 
@@ -139,7 +141,15 @@ def test_every_admm_key_in_a_file_reaches_the_solver(tmp_path):
     assert (config.carry_multipliers, config.warm_start, config.repair) == ("never", False, False)
     assert (config.owner_weight, config.dynamic_copies, config.closing_time) == (2.5, True, 0.25)
     assert (config.repair_rounds, config.deadline_repair, config.repair_order) == (5, "select", "colour")
-    assert set(ADMMOptions.model_fields) == set(yaml.safe_load(ADMM_SECTION)["solver"]["admm"])
+    car_only = {"pair_copies"}  # the ADMM of a swarm with cars: test_pair_copies_in_a_file_reach_the_car_solver
+    assert set(ADMMOptions.model_fields) - car_only == set(yaml.safe_load(ADMM_SECTION)["solver"]["admm"])
+
+
+def test_pair_copies_in_a_file_reach_the_car_solver():
+    scn = builtin_scenario("parking").with_updates(**{"solver.method": "admm"})
+    assert FootprintADMMOptions.from_options(scn.solver).pair_copies == "later"
+    both = scn.with_updates(**{"solver.admm.pair_copies": "both"})
+    assert FootprintADMMOptions.from_options(both.solver).pair_copies == "both"
 
 
 def test_closing_time_follows_the_coupling_margin_unless_set():

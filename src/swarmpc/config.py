@@ -543,6 +543,14 @@ class ADMMOptions(_Frozen):
         description="Weight of an agent's own block in the consensus: its penalty is rho times this, and the "
         "consensus average weighs its own positions this much against 1 for each neighbour's copy.",
     )
+    pair_copies: Literal["both", "later"] = Field(
+        default="both",
+        description="Which agents of a coupled pair hold a copy of the other and keep the pair's OBCA rows "
+        "against it, in a swarm with cars: `both` (the paper's consensus) or `later`, only the agent later in "
+        "index order (the earlier one still yields through the consensus of its block, which that copy joins; "
+        "a repair re-plans against every neighbour). `later` lets the cars of `parking` agree where `both` "
+        "leaves one facing a divider.",
+    )
     dynamic_copies: bool = Field(
         default=False,
         description="An agent's copies of its neighbours are whole trajectories obeying their dynamics and "
@@ -671,7 +679,7 @@ class SolverConfig(_Frozen):
         description="`admm`: consensus ADMM over the agents' local problems; `centralized`: one NLP over the "
         "whole swarm. A scenario with car agents (`agents[].model: car`) takes both: its ADMM agrees on footprint "
         "poses (`executor.type: serial`; `solver.local: qp` solves each local step as a sequence of QPs about "
-        "the plan; of the `admm` subsection only `owner_weight` applies), its centralised NLP ignores "
+        "the plan; of the `admm` subsection only `owner_weight` and `pair_copies` apply), its centralised NLP ignores "
         "`solver.local` and the ADMM keys.",
     )
     rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
@@ -1411,6 +1419,9 @@ def _shape_errors(scn: Scenario) -> list[str]:
                     errors.append(f"obstacles[{n}].box.{field}: expected {d} values for dim {d}")
         elif ob.polytope is not None and len(ob.polytope.G[0]) != d:
             errors.append(f"obstacles[{n}].polytope.G: rows must have {d} columns for dim {d}")
+    if scn.solver.admm.pair_copies != "both" and not scn.has_cars:
+        errors.append(f"solver.admm.pair_copies: {scn.solver.admm.pair_copies} applies to the ADMM of a swarm with "
+                      "cars; a swarm of point agents keeps both")
     for n, agent in enumerate(scn.agents):
         errors.extend(_agent_model_errors(scn, n))
         for field in ("start", "goal"):

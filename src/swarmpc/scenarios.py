@@ -269,7 +269,10 @@ def parking(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
     The straight line out of a bay runs into the divider beside it, so every car starts from its
     SE(2) path (``initial_guess: rrt``). The steering weight is a tenth of the other car
     built-ins' (a car squares up in a bay only by steering hard over a short distance), and the
-    keep-right rule is off (one-way traffic; a turned goal points into the dividers)."""
+    keep-right rule is off (one-way traffic; a turned goal points into the dividers). Flown by
+    ADMM (``solver.method: admm``), of each coupled pair only the later car holds a copy of the
+    other (``solver.admm.pair_copies: later``): with copies both ways the cars agreed on a plan in
+    which the second car ends facing a divider (docs/lab/cars.md#parking-admm-probe)."""
     bays = [-1.2, -0.4, 0.4, 1.2]
     dividers = [{"box": {"center": [x, 0.35], "half_size": [0.05, 0.35]}} for x in (-1.6, -0.8, 0.0, 0.8, 1.6)]
     agents = [
@@ -280,7 +283,8 @@ def parking(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
     ]
     weights = {**CARS["weights"], "R": [[1.0, 0.0], [0.0, 0.1]]}
     return {"name": "parking", "dim": 2, **CARS, "weights": weights, "delta": delta, "seed": seed,
-            "solver": {**CARS["solver"], "initial_guess": "rrt"}, "deadlock": {"keep_right_deg": 0.0},
+            "solver": {**CARS["solver"], "initial_guess": "rrt", "admm": {"pair_copies": "later"}},
+            "deadlock": {"keep_right_deg": 0.0},
             "workspace": {"lower": [-3.5, 0.0], "upper": [4.5, 3.8]}, "obstacles": dividers, "agents": agents}
 
 

@@ -11,7 +11,9 @@ One MPC step (:meth:`FootprintADMMSolver.plan`):
    the horizon, whatever they plan, so they need no copies of each other.
 2. **ADMM** (scaled form). Each agent's consensus block is its footprint pose at steps 1..N
    (:func:`~swarmpc.formulation.footprint_local.consensus_block`); its holders are the agent
-   itself and every neighbour (its copy). Per iteration every agent solves its local problem
+   itself and every neighbour (its copy); with ``pair_copies`` "later" only the neighbours later in
+   index order hold a copy, so of each pair only the later agent keeps the pair's OBCA rows, and
+   the earlier one yields only through the consensus of its block. Per iteration every agent solves its local problem
    with IPOPT (warm-started from its previous iterate), the consensus of a block is the mean of
    its holders' ``v + Y / rho_b`` weighted by their penalties rho_b (``rho * owner_weight`` for the
    agent's own block, ``rho`` for a copy), and each holder's Y moves by ``rho_b (v - z)``. It stops when the
@@ -20,12 +22,12 @@ One MPC step (:meth:`FootprintADMMSolver.plan`):
 3. **Safety.** In the hard form the agents' own plans are checked pairwise by the exact distance
    between their footprints (:func:`~swarmpc.model.footprint.rectangle_distance`) at every
    constrained step. The agents of a pair closer than d_min are repaired one after the other in
-   index order: each solves its local problem again with its copies pinned to its neighbours'
-   current plans, so its answer keeps d_min from all of them by the OBCA rows; every pair with a
-   repaired agent is then certified by the later of its two repairs. An agent whose repair fails
-   brakes (:func:`~swarmpc.solvers.base.braking_plan`: a car cannot side-step), which is counted
-   as a fallback, and the agents whose plans that braking plan violates are repaired against it
-   in a further pass (:data:`REPAIR_PASSES` passes at most).
+   index order: each solves its local problem again with copies of every neighbour (whatever
+   ``pair_copies``) pinned to their current plans, so its answer keeps d_min from all of them by
+   the OBCA rows; every pair with a repaired agent is then certified by the later of its two
+   repairs. An agent whose repair fails brakes (:func:`~swarmpc.solvers.base.braking_plan`: a car
+   cannot side-step), which is counted as a fallback, and the agents whose plans that braking plan
+   violates are repaired against it in a further pass (:data:`REPAIR_PASSES` passes at most).
 
 A local solve that fails warm (from the agent's previous answer) is tried once more cold: from
 the agent's last plan with every certificate seeded afresh from the geometry.
@@ -97,13 +99,16 @@ class FootprintADMMOptions:
     owner_weight: float = 1.0
     """Weight w of an agent's own block against each copy of it: its penalty is rho * w and the
     consensus is the penalty-weighted mean of the holders' values."""
+    pair_copies: str = "both"
+    """Which agents of a coupled pair hold a copy of the other (and the pair's OBCA rows): ``both``
+    or ``later`` (the one later in index order; module docstring, step 2)."""
 
     @classmethod
     def from_options(cls, options: SolverConfig) -> FootprintADMMOptions:
         margin = options.coupling_margin
         return cls(options.rho, options.max_iter, options.tol, 0.5 if margin is None else margin,
                    owner_weight=options.admm.owner_weight, local=options.local,
-                   qp=QPLocalOptions.from_config(options.qp))
+                   qp=QPLocalOptions.from_config(options.qp), pair_copies=options.admm.pair_copies)
 
 
 def _euclidean_reach(agent: FootprintAgent, state: np.ndarray) -> float:
@@ -235,11 +240,16 @@ class FootprintADMMSolver:
         """The last step's consensus, to start the next step's from (shifted)."""
         self._goals: list[np.ndarray] | None = None
         """The last step's goals (:meth:`_restarts`)."""
+        self._pairs: list[tuple[int, int]] = []
+        """The current step's coupled pairs."""
 
-    def _order(self, i: int, pairs: list[tuple[int, int]]) -> tuple[int, ...]:
-        """Agent i's neighbours, cars first, each kind in index order (the slot order)."""
+    def _order(self, i: int, pairs: list[tuple[int, int]], every: bool = False) -> tuple[int, ...]:
+        """Agent i's neighbours whose copies it holds (``every``: all of them, as in a repair), cars
+        first, each kind in index order (the slot order)."""
         agents = self.swarm.agents
         mine = [b if a == i else a for a, b in pairs if i in (a, b)]
+        if self.options.pair_copies == "later" and not every:
+            mine = [j for j in mine if j < i]
         return tuple(sorted(mine, key=lambda j: (not agents[j].oriented, j)))
 
     def _problem(self, i: int, neighbours: tuple[int, ...]) -> CompiledNLP:
@@ -296,11 +306,14 @@ class FootprintADMMSolver:
             params[f"S{slot}"] = slot_size(agents[i], agents[j])
         return params
 
-    def _solve(self, i: int, step: _Step, guess: np.ndarray, fixed: dict[str, np.ndarray] | None = None) -> bool:
-        """Agent i's local solve, warm from its last answer; when that fails (or there is none),
-        cold from its last plan (or ``guess``) with certificates seeded afresh. Keeps the answer
-        when one succeeds; True on success."""
-        state = self._agents[i]
+    def _solve(
+        self, i: int, step: _Step, guess: np.ndarray, fixed: dict[str, np.ndarray] | None = None,
+        state: _AgentState | None = None,
+    ) -> bool:
+        """Agent i's local solve (in ``state``, default its own), warm from its last answer; when
+        that fails (or there is none), cold from its last plan (or ``guess``) with certificates
+        seeded afresh. Keeps the answer when one succeeds; True on success."""
+        state = self._agents[i] if state is None else state
         assert state is not None
         agents = self.swarm.agents
         params = self._params(i, step, state)
@@ -419,18 +432,26 @@ class FootprintADMMSolver:
     def _repair_agent(
         self, i: int, step: _Step, plans: list[np.ndarray], inputs: list[np.ndarray], fallback: np.ndarray,
     ) -> None:
-        """Agent i's plan solved again against its neighbours' plans (copies pinned), or braking."""
-        state = self._agents[i]
-        assert state is not None
+        """Agent i's plan solved again against every neighbour's plan (copies pinned), or braking.
+        With ``pair_copies`` "later" the agent may hold no copy of some neighbours: the repair
+        is solved in a problem with all of them, which its own state then keeps no answer of."""
+        own = self._agents[i]
+        assert own is not None
         agents = self.swarm.agents
+        every = self._order(i, self._pairs, every=True)
+        state = own if every == own.neighbours else _AgentState(every, self._problem(i, every), qp=self._qp(i, every))
         fixed = {f"C{slot}": consensus_block(agents[j], plans[j]) for slot, j in enumerate(state.neighbours)}
-        before = state.seconds
-        if self._solve(i, step, plans[i], fixed):
+        before, failures = state.seconds, state.failures
+        if self._solve(i, step, plans[i], fixed, state):
             plans[i], inputs[i] = state.solution.x["X"].T, state.solution.x["U"].T  # type: ignore[union-attr]
         else:
             plans[i], inputs[i] = braking_plan(step.states[i], agents[i].settings)
             fallback[i] = True
         step.critical += state.seconds - before
+        if state is not own:
+            own.seconds += state.seconds - before
+            own.failures += state.failures - failures
+            own.handovers += state.handovers
 
     def plan(
         self, states: Sequence[np.ndarray], goals: Sequence[np.ndarray], guesses: Sequence[np.ndarray],
@@ -442,7 +463,8 @@ class FootprintADMMSolver:
         states = [np.asarray(x, float) for x in states]
         restart = self._restarts(goals)
         self._goals = [np.asarray(g, float).copy() for g in goals]
-        self._start_agents(coupled_pairs(swarm, np.array(states), self.options.coupling_margin), restart)
+        self._pairs = coupled_pairs(swarm, np.array(states), self.options.coupling_margin)
+        self._start_agents(self._pairs, restart)
         step = _Step(states, [np.asarray(g, float) for g in goals], self._first_consensus(guesses), self.options.rho)
         fallback = np.zeros(m, bool)
         try:
