@@ -272,7 +272,9 @@ def parking(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
     keep-right rule is off (one-way traffic; a turned goal points into the dividers). Flown by
     ADMM (``solver.method: admm``), of each coupled pair only the later car holds a copy of the
     other (``solver.admm.pair_copies: later``): with copies both ways the cars agreed on a plan in
-    which the second car ends facing a divider (docs/lab/cars.md#parking-admm-probe)."""
+    which the second car ends facing a divider; with ``later`` every car parked in one run, and in
+    a second, whose guesses the machine's load cut differently, two were still short at step 103
+    (docs/lab/cars.md#parking-admm-probe)."""
     bays = [-1.2, -0.4, 0.4, 1.2]
     dividers = [{"box": {"center": [x, 0.35], "half_size": [0.05, 0.35]}} for x in (-1.6, -0.8, 0.0, 0.8, 1.6)]
     agents = [
