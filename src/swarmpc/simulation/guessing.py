@@ -18,9 +18,12 @@ from swarmpc.solvers.guesses import nominal_speed
 from swarmpc.solvers.registry import agent_settings
 from swarmpc.solvers.rrt import RRTGuess, straight_line_guess
 
-CAR_BUDGET_FACTOR = 20.0
-"""A car's SE(2) plan may take this many times ``solver.rrt_time_budget`` (a point's budget): its
-search space has the heading as a third dimension and its motions follow the turning limit."""
+CAR_BUDGET_FACTOR = 200.0
+"""A car's SE(2) plan may take this many times ``solver.rrt_time_budget`` (a point's budget; 10 s
+by default). It is a guard for a stalled machine, not the search's end: the planner's iterations
+(:data:`~swarmpc.solvers.car_guess.PLANNER_ITERATIONS`) end a search well within it, so a car's
+guess, and the run, do not depend on the machine's load. (Each search of the ``parking``
+built-in takes 1-3 s, simplification included, on an idle 2-core machine.)"""
 CAR_RETRY_FACTOR = 4
 """A car plan that found nothing is retried once with this many times its planner iterations and
 time limit (a narrow passage a short search misses)."""
