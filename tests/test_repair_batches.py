@@ -1,5 +1,5 @@
 """The repair pass asks runs of mutually uncoupled agents in one batch
-(:func:`swarmpc.solvers.admm.repair.independent_run`): the answers are those of the sequential
+(:func:`swarmpc.solvers.admm.schedule.independent_run`): the answers are those of the sequential
 order, and the batch costs the critical path only its slowest re-plan. So do the re-plans around
 a failed agent (``Repair._replan_around``), checked against the one-by-one loop with a stand-in
 for the agents."""
@@ -13,7 +13,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarmpc.solvers.admm.repair import LevelSchedule, Repair, colour_order, independent_run
+from swarmpc.solvers.admm.repair import Repair
+from swarmpc.solvers.admm.schedule import LevelSchedule, colour_order, independent_run
 
 
 @st.composite
@@ -106,7 +107,7 @@ def test_re_plans_around_failures_in_batches_give_the_one_by_one_answers(seed, m
     agents = Agents(neighbours)
     repair = Repair.__new__(Repair)
     repair.safety = SimpleNamespace(settings=SimpleNamespace(d_min=0.05), largest_delta=np.full((m, m), 0.3))
-    repair._replan_all = agents.replan_all  # type: ignore[method-assign]
+    repair.replan = agents.replan_all  # type: ignore[assignment]
     batched = list(plans)
     repair._replan_around(failures, SimpleNamespace(neighbours=neighbours), None, 0.0, batched)
     one_by_one = list(plans)  # the loop the batches stand in for
@@ -157,7 +158,7 @@ def pass_with_stand_ins(neighbours, plans, order):  # type: ignore[no-untyped-de
     repair = Repair.__new__(Repair)
     repair.requests = SimpleNamespace(config=SimpleNamespace(repair_order="index"))
     repair.safety = SimpleNamespace(settings=SimpleNamespace(d_min=0.05), largest_delta=np.full((m, m), 0.3))
-    repair._replan_all = recording.replan_all  # type: ignore[method-assign]
+    repair.replan = recording.replan_all  # type: ignore[assignment]
     repair._replan_around = lambda *args: None  # type: ignore[method-assign]
     repaired = repair.sequential(SimpleNamespace(neighbours=neighbours), None, 0.0, list(plans), order)
     assert all(rescue for _, rescue in recording.calls)  # every call may rescue

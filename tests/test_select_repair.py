@@ -15,8 +15,9 @@ from swarmpc.scenarios import builtin_scenario
 from swarmpc.solvers.admm import ADMMConfig
 from swarmpc.solvers.admm.graph import CouplingGraph
 from swarmpc.solvers.admm.messages import LocalResult, StepRequests
-from swarmpc.solvers.admm.repair import Repair
+from swarmpc.solvers.admm.replan import Replanner
 from swarmpc.solvers.admm.safety import SafetyChecks
+from swarmpc.solvers.admm.selection import Selection
 
 SCN = builtin_scenario("paper-2d")
 S = OCPSettings.from_scenario(SCN)
@@ -43,7 +44,8 @@ def selection(new_points: np.ndarray, committed_points: np.ndarray, fallback: li
     graph = CouplingGraph(everyone, tuple(() for _ in range(M)), tuple(MappingProxyType({}) for _ in range(M)))
     new = [result(i, new_points[i], fallback[i]) for i in range(M)]
     committed = [result(i, committed_points[i], True) for i in range(M)]
-    chosen, clashes = Repair(requests, safety, lambda requests: []).select(graph, new, committed, waiting)
+    selection = Selection(requests, safety, Replanner(requests, lambda requests: []))
+    chosen, clashes = selection.select(graph, new, committed, waiting)
     return safety, new, committed, chosen, clashes
 
 
@@ -109,7 +111,7 @@ def test_a_failed_clearing_replan_keeps_the_committed_plan_and_asks_the_partner(
     states = np.zeros((M, 2 * S.dim))
     requests = StepRequests(S, ADMMConfig(), BODIES, states, states, np.zeros((M, S.horizon + 1, 2 * S.dim)))
     z = np.zeros((M, S.dim, K))
-    cleared = Repair(requests, safety, solve).clear(graph, z, 1.0, chosen, clashes)
+    cleared = Selection(requests, safety, Replanner(requests, solve)).clear(graph, z, 1.0, chosen, clashes)
     assert [agent for agent, _, _ in asked] == [3, 2]
     assert asked[1][1] == (3,) and np.allclose(asked[1][2][0], committed[3].own)
     assert cleared[3].own is committed[3].own and np.allclose(cleared[2].own, 5.0)
@@ -149,7 +151,7 @@ def test_a_refreshed_plan_replaces_the_committed_one_only_where_it_keeps_every_p
                           tuple(MappingProxyType({}) for _ in range(M)))
     states = np.zeros((M, 2 * S.dim))
     requests = StepRequests(S, ADMMConfig(), BODIES, states, states, np.zeros((M, S.horizon + 1, 2 * S.dim)))
-    repair = Repair(requests, safety, solve)
+    repair = Selection(requests, safety, Replanner(requests, solve))
     pairs = repair.pairs_to_check(graph, chosen, committed)
     refreshed, coupled = repair.refresh(graph, np.zeros((M, S.dim, K)), 1.0, chosen, iterates, [0], pairs)
     assert coupled.neighbours[0] == (1,) and coupled.neighbours[1] == (0,)

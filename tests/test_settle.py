@@ -1,4 +1,4 @@
-"""The last safety pass (:meth:`swarmpc.solvers.admm.repair.Repair.settle`): fallback agents still
+"""The last safety pass (:class:`swarmpc.solvers.admm.settle.Settle`): fallback agents still
 in conflict choose, among plans that need no solve, the combination whose first conflict comes
 latest; agents whose solves succeeded keep their plans."""
 
@@ -14,6 +14,7 @@ from swarmpc.solvers.admm import ADMMConfig
 from swarmpc.solvers.admm.messages import LocalResult, StepRequests
 from swarmpc.solvers.admm.repair import Repair
 from swarmpc.solvers.admm.safety import SafetyChecks
+from swarmpc.solvers.admm.settle import Settle
 from swarmpc.solvers.base import braking_plan
 
 SCN = scenario_from_dict({
@@ -38,7 +39,7 @@ def coasting(state: np.ndarray, agent: int, fallback: bool) -> LocalResult:
 def settle(states: np.ndarray, plans: list[LocalResult]) -> tuple[SafetyChecks, list[LocalResult]]:
     safety = SafetyChecks(S, BODIES)
     requests = StepRequests(S, ADMMConfig(), BODIES, states, states, np.zeros((M, S.horizon + 1, 2 * S.dim)))
-    return safety, Repair(requests, safety, lambda requests: []).settle(plans)
+    return safety, Settle(requests, safety)(plans)
 
 
 def test_two_failed_agents_head_on_both_brake_and_stay_apart():

@@ -30,7 +30,11 @@ The parts:
 * :mod:`~swarmpc.solvers.admm.graph`: the per-step coupling graph (reach, copies, planes);
 * :mod:`~swarmpc.solvers.admm.safety`: the pairwise checks of the plans;
 * :mod:`~swarmpc.solvers.admm.consensus`: averaging, residuals, stop rule, penalty schedule;
-* :mod:`~swarmpc.solvers.admm.repair`: the repair pass and stranded fallbacks;
+* :mod:`~swarmpc.solvers.admm.repair`: the safety passes in order, the repair pass and stranded fallbacks;
+* :mod:`~swarmpc.solvers.admm.selection`: the selection pass of a deadline stop;
+* :mod:`~swarmpc.solvers.admm.settle`: the settling pass of fallback agents, which asks no agent;
+* :mod:`~swarmpc.solvers.admm.replan`: re-plans against neighbours' plans held fixed;
+* :mod:`~swarmpc.solvers.admm.schedule`: re-plans batched as the one-by-one order allows;
 * :mod:`~swarmpc.solvers.admm.clock`: the critical path and the deadline;
 * :mod:`~swarmpc.solvers.admm.solver`: :class:`ADMMSolver`, the coordinator.
 """

@@ -96,7 +96,7 @@ class ADMMConfig:
     (:meth:`~swarmpc.solvers.admm.repair.Repair.sequential`), every coupled agent re-planning one
     after another. "select": no agent re-plans unless it must; each flies its new plan or the plan
     it committed to at the last step, shifted, chosen pair by pair
-    (:meth:`~swarmpc.solvers.admm.repair.Repair.select`); one agent of each pair of committed
+    (:class:`~swarmpc.solvers.admm.selection.Selection`); one agent of each pair of committed
     plans that conflict re-plans, and so do agents sent back two steps in a row. "select"
     overruns the deadline less often but the swarm is slower: at M = 16 a quarter of the misses
     at a 16 % higher cost, at M = 64 1.2-2 times the time to the goals

@@ -138,7 +138,7 @@ class StepRequests:
     guess: np.ndarray
     applied: tuple[np.ndarray, np.ndarray] | None = None
     """States (M, N+1, n) and inputs (M, N, m) of the plans the last step applied (None: none
-    yet): the committed plans of :meth:`~swarmpc.solvers.admm.repair.Repair.settle`."""
+    yet): the committed plans of :class:`~swarmpc.solvers.admm.settle.Settle`."""
 
     def request(
         self, i: int, graph: CouplingGraph, z: np.ndarray, rho: float, rho_previous: float, new_step: bool,

@@ -162,8 +162,8 @@ class ADMMSolver:
         every constrained step, checked on the plans themselves; each agent flies its last iterate
         or the plan applied at the last step, shifted (its committed plan), and an agent of a pair
         of committed plans that conflict re-plans against its neighbours' chosen plans
-        (:meth:`~swarmpc.solvers.admm.repair.Repair.select`,
-        :meth:`~swarmpc.solvers.admm.repair.Repair.clear`); what that leaves goes through the passes
+        (:class:`~swarmpc.solvers.admm.selection.Selection`,
+        :meth:`~swarmpc.solvers.admm.selection.Selection.clear`); what that leaves goes through the passes
         below for those agents. With "sequential" (the default): the deadline only ever removes ADMM iterations;
         it never shortens or skips a safety pass. A plan applied after a deadline stop has passed
         exactly the passes of a step that reached ``max_iter`` without consensus: every coupled
