@@ -271,10 +271,9 @@ def parking(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
     built-ins' (a car squares up in a bay only by steering hard over a short distance), and the
     keep-right rule is off (one-way traffic; a turned goal points into the dividers). Flown by
     ADMM (``solver.method: admm``), of each coupled pair only the later car holds a copy of the
-    other (``solver.admm.pair_copies: later``): with copies both ways the cars agreed on a plan in
-    which the second car ends facing a divider; with ``later`` every car parked in one run, and in
-    a second, whose guesses the machine's load cut differently, two were still short at step 103
-    (docs/lab/cars.md#parking-admm-probe)."""
+    other (``solver.admm.pair_copies: later``), the earlier car yielding only through the
+    consensus. By ADMM not every car parks, with either setting: the two cars entering the western
+    bays end up in each other's way (docs/lab/cars.md#parking-admm-probe)."""
     bays = [-1.2, -0.4, 0.4, 1.2]
     dividers = [{"box": {"center": [x, 0.35], "half_size": [0.05, 0.35]}} for x in (-1.6, -0.8, 0.0, 0.8, 1.6)]
     agents = [
