@@ -22,8 +22,9 @@ CAR_BUDGET_FACTOR = 200.0
 """A car's SE(2) plan may take this many times ``solver.rrt_time_budget`` (a point's budget; 10 s
 by default). It is a guard for a stalled machine, not the search's end: the planner's iterations
 (:data:`~swarmpc.solvers.car_guess.PLANNER_ITERATIONS`) end a search well within it, so a car's
-guess, and the run, do not depend on the machine's load. (Each search of the ``parking``
-built-in takes 1-3 s, simplification included, on an idle 2-core machine.)"""
+guess, and the run, do not depend on the machine's load. A search round the ``parking`` bays
+takes seconds on a slow machine, simplification included, so a limit near that cut searches
+short whenever the machine was busy."""
 CAR_RETRY_FACTOR = 4
 """A car plan that found nothing is retried once with this many times its planner iterations and
 time limit (a narrow passage a short search misses)."""
