@@ -548,8 +548,7 @@ class ADMMOptions(_Frozen):
         description="Which agents of a coupled pair hold a copy of the other and keep the pair's OBCA rows "
         "against it, in a swarm with cars: `both` (the paper's consensus) or `later`, only the agent later in "
         "index order (the earlier one still yields through the consensus of its block, which that copy joins; "
-        "a repair re-plans against every neighbour). The `parking` built-in sets `later`: in one run every car "
-        "parked with it, where `both` left one facing a divider.",
+        "a repair re-plans against every neighbour). The `parking` built-in sets `later`.",
     )
     dynamic_copies: bool = Field(
         default=False,
