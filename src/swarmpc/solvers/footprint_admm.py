@@ -222,35 +222,18 @@ class _Step:
     dual: list[float] = field(default_factory=list)
 
 
-class FootprintADMMSolver:
-    """Consensus ADMM over the local problems of a swarm with cars (module docstring).
+class _LocalProblems:
+    """Every agent's local problems, built once per agent and sequence of neighbour kinds and
+    reused: the NLP, and with ``local: qp`` the QP local step."""
 
-    A local problem is built once per agent and sequence of neighbour kinds and reused; an
-    agent's solve starts from its previous answer (shifted by one step at a new MPC step) while
-    its neighbours are the same, and from the guess otherwise.
-    """
-
-    def __init__(self, swarm: FootprintSwarm, options: FootprintADMMOptions = FootprintADMMOptions()) -> None:
-        self.swarm = swarm
-        self.options = options
+    def __init__(self, swarm: FootprintSwarm, options: FootprintADMMOptions) -> None:
+        self.swarm, self.options = swarm, options
         self._problems: dict[tuple[int, tuple[NeighbourKind, ...]], CompiledNLP] = {}
         self._qps: dict[tuple[int, tuple[NeighbourKind, ...]], FootprintLocalQP] = {}
-        self._agents: list[_AgentState | None] = [None] * swarm.num_agents
-        self._z: list[np.ndarray] | None = None
-        """The last step's consensus, to start the next step's from (shifted)."""
-        self._goals: list[np.ndarray] | None = None
-        """The last step's goals (:meth:`_restarts`)."""
-        self._pairs: list[tuple[int, int]] = []
-        """The current step's coupled pairs."""
 
-    def _order(self, i: int, pairs: list[tuple[int, int]], every: bool = False) -> tuple[int, ...]:
-        """Agent i's neighbours whose copies it holds (``every``: all of them, as in a repair), cars
-        first, each kind in index order (the slot order)."""
-        agents = self.swarm.agents
-        mine = [b if a == i else a for a, b in pairs if i in (a, b)]
-        if self.options.pair_copies == "later" and not every:
-            mine = [j for j in mine if j < i]
-        return tuple(sorted(mine, key=lambda j: (not agents[j].oriented, j)))
+    def state(self, i: int, neighbours: tuple[int, ...]) -> _AgentState:
+        """A fresh state of agent i holding copies of ``neighbours`` (in slot order), with its problems."""
+        return _AgentState(neighbours, self._problem(i, neighbours), qp=self._qp(i, neighbours))
 
     def _problem(self, i: int, neighbours: tuple[int, ...]) -> CompiledNLP:
         kinds = tuple(NeighbourKind.of(self.swarm.agents[j]) for j in neighbours)
@@ -270,6 +253,36 @@ class FootprintADMMSolver:
                                                      self.options.owner_weight)
         return self._qps[(i, kinds)]
 
+
+class FootprintADMMSolver:
+    """Consensus ADMM over the local problems of a swarm with cars (module docstring).
+
+    A local problem is built once per agent and sequence of neighbour kinds and reused; an
+    agent's solve starts from its previous answer (shifted by one step at a new MPC step) while
+    its neighbours are the same, and from the guess otherwise.
+    """
+
+    def __init__(self, swarm: FootprintSwarm, options: FootprintADMMOptions = FootprintADMMOptions()) -> None:
+        self.swarm = swarm
+        self.options = options
+        self._locals = _LocalProblems(swarm, options)
+        self._agents: list[_AgentState | None] = [None] * swarm.num_agents
+        self._z: list[np.ndarray] | None = None
+        """The last step's consensus, to start the next step's from (shifted)."""
+        self._goals: list[np.ndarray] | None = None
+        """The last step's goals (:meth:`_restarts`)."""
+        self._pairs: list[tuple[int, int]] = []
+        """The current step's coupled pairs."""
+
+    def _order(self, i: int, pairs: list[tuple[int, int]], every: bool = False) -> tuple[int, ...]:
+        """Agent i's neighbours whose copies it holds (``every``: all of them, as in a repair), cars
+        first, each kind in index order (the slot order)."""
+        agents = self.swarm.agents
+        mine = [b if a == i else a for a, b in pairs if i in (a, b)]
+        if self.options.pair_copies == "later" and not every:
+            mine = [j for j in mine if j < i]
+        return tuple(sorted(mine, key=lambda j: (not agents[j].oriented, j)))
+
     def _start_agents(self, pairs: list[tuple[int, int]], restart: frozenset[int] = frozenset()) -> None:
         """Every agent's state for a new step: the previous answer shifted when the neighbours
         are unchanged, and with ``carry_multipliers`` the multipliers of every stable block
@@ -286,7 +299,7 @@ class FootprintADMMSolver:
                   for i, previous in enumerate(self._agents)]
         for i, neighbours in enumerate(order):
             previous = self._agents[i]
-            state = _AgentState(neighbours, self._problem(i, neighbours), qp=self._qp(i, neighbours))
+            state = self._locals.state(i, neighbours)
             if previous is not None and stable[i] and previous.solution is not None:
                 state.solution = _shifted(previous.problem, previous.solution)
             if previous is not None and self.options.carry_multipliers:
@@ -439,7 +452,7 @@ class FootprintADMMSolver:
         assert own is not None
         agents = self.swarm.agents
         every = self._order(i, self._pairs, every=True)
-        state = own if every == own.neighbours else _AgentState(every, self._problem(i, every), qp=self._qp(i, every))
+        state = own if every == own.neighbours else self._locals.state(i, every)
         fixed = {f"C{slot}": consensus_block(agents[j], plans[j]) for slot, j in enumerate(state.neighbours)}
         before, failures = state.seconds, state.failures
         if self._solve(i, step, plans[i], fixed, state):
