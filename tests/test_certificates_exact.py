@@ -163,3 +163,21 @@ def test_polytope_weak_duality(seed, dim, margin):
     assert np.all(certificate_values(points, G, g, lam[:, None]) >= margin - 1e-12)
     exact = np.array([hull_signed_distance(p, hull) for p in points.T])
     assert np.all(exact >= margin - TOL)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(dim=st.sampled_from([2, 3]), copies=st.integers(1, 5), steps=st.integers(2, 12), data=st.data())
+def test_one_box_per_column_equals_each_box_on_its_own(dim: int, copies: int, steps: int, data: st.DataObject) -> None:
+    """A (d, K) half-size (one box per column: the pairs of several bodies in one call) gives
+    each column the certificate of its own box called alone, to rounding."""
+    points = data.draw(st.lists(coordinate, min_size=dim * copies * steps, max_size=dim * copies * steps))
+    halves = data.draw(st.lists(half_sizes, min_size=dim * copies, max_size=dim * copies))
+    offsets = np.reshape(points, (dim, copies * steps))
+    half = np.reshape(halves, (dim, copies))
+    together = box_certificates(offsets, np.repeat(half, steps, axis=1))
+    for c in range(copies):
+        alone = box_certificates(offsets[:, c * steps:(c + 1) * steps], half[:, c])
+        np.testing.assert_allclose(together.lam[:, c * steps:(c + 1) * steps], alone.lam, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(together.value[c * steps:(c + 1) * steps], alone.value, rtol=0, atol=1e-15)
+        exact = [box_signed_distance(offsets[:, c * steps + k], half[:, c]) for k in range(steps)]
+        np.testing.assert_allclose(together.value[c * steps:(c + 1) * steps], exact, atol=TOL)

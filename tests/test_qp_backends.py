@@ -97,6 +97,38 @@ def test_both_backends_reach_the_same_optimum_before_and_after_an_update(seed, n
     assert_same_answer(backends, P2, q2, A2, lower2, upper2)
 
 
+def test_osqps_compiled_solver_called_directly_answers_as_its_interface_does() -> None:
+    """OSQPBackend calls OSQP's compiled solver for updates and solves (its interface's
+    bookkeeping costs as much as a vector update); the same calls through the public interface
+    (an OSQP without the compiled object) give the same answers, bit for bit, before and after an
+    update of vectors and matrix values, and on an infeasible QP."""
+    P, q, A, lower, upper = random_qp(11, n=8, eq=2, ineq=9)
+    direct, public = OSQPBackend(OPTIONS), OSQPBackend(OPTIONS)
+    for b in (direct, public):
+        b.setup(P, q, A, lower, upper)
+    assert direct._core is not None
+    public._core = None
+    rng = np.random.default_rng(12)
+    start = rng.normal(size=8)
+    for call in [(q, lower, upper, None, None), (q + 1.0, lower - 0.1, upper + 0.1, P.data * 2.0, A.data * 1.1)]:
+        answers = []
+        for b in (direct, public):
+            b.update(*call)
+            answers.append(b.solve(start, None))
+        assert answers[0].solved and answers[0].status == answers[1].status
+        assert answers[0].iterations == answers[1].iterations
+        np.testing.assert_array_equal(answers[0].x, answers[1].x)
+        np.testing.assert_array_equal(answers[0].y, answers[1].y)
+    # x0 >= 1 and x0 <= 0: infeasible, reported alike
+    P, A = sp.csc_matrix(np.triu(np.eye(2))), sp.csc_matrix(np.array([[1.0, 0.0], [1.0, 0.0]]))
+    bounds = (np.array([1.0, -np.inf]), np.array([np.inf, 0.0]))
+    for b in (direct, public):
+        b.setup(P, np.zeros(2), A, *bounds)
+    public._core = None
+    infeasible = [b.solve(np.zeros(2), None) for b in (direct, public)]
+    assert not infeasible[0].solved and infeasible[0].status == infeasible[1].status
+
+
 def test_an_equality_row_that_opens_is_taken_as_an_inequality():
     P, q, A, lower, upper = random_qp(3, n=6, eq=2, ineq=6)
     backends = both(P, q, A, lower, upper)

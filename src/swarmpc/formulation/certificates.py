@@ -93,8 +93,9 @@ def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> Certificates
     ----------
     offsets : (d, K) or (d,) array
         q = p_i - p_j for an agent pair (or p - centre for a box obstacle), time on the last axis.
-    half_size : (d,) array or scalar
-        Half-size of the box (delta; an obstacle box's half-size).
+    half_size : (d,) array, scalar, or (d, K) array
+        Half-size of the box (delta; an obstacle box's half-size); (d, K): one box per column
+        (the pairs of several bodies in one call).
 
     Returns
     -------
@@ -104,9 +105,14 @@ def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> Certificates
     """
     q, single = _columns(offsets)
     d, K = q.shape
-    half = np.asarray(half_size, float).reshape(-1, 1)  # (d, 1) or (1, 1): broadcast on the columns
-    if half.shape[0] not in (1, d):
-        raise ValueError(f"box_certificates: half_size must be a scalar or ({d},), got {half.shape[0]} values")
+    half = np.asarray(half_size, float)
+    if half.ndim == 2 and half.shape[1] == K and K > 1:
+        if half.shape[0] != d:
+            raise ValueError(f"box_certificates: half_size per column must be ({d}, {K}), got {half.shape}")
+    else:
+        half = half.reshape(-1, 1)  # (d, 1) or (1, 1): broadcast on the columns
+        if half.shape[0] not in (1, d):
+            raise ValueError(f"box_certificates: half_size must be a scalar or ({d},), got {half.shape[0]} values")
     excess = np.abs(q) - half
     outside = np.maximum(excess, 0.0)
     gap = np.sqrt(np.einsum("ik,ik->k", outside, outside))

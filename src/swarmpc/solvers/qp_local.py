@@ -293,19 +293,6 @@ class Linearisation:
     obstacle_value: np.ndarray
 
 
-def _delta_groups(half: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(copy indices, their Delta (d,)) per distinct column of ``half`` (d, n): one vectorised
-    certificate call per body-size pair, a single one when every pair has the same Delta."""
-    n = half.shape[1]
-    if n == 0:
-        return []
-    if np.all(half == half[:, :1]):
-        return [(np.arange(n), half[:, 0])]
-    columns, group = np.unique(half.T, axis=0, return_inverse=True)
-    group = group.reshape(-1)
-    return [(np.flatnonzero(group == g), column) for g, column in enumerate(columns)]
-
-
 class Certifier:
     """Best certificates of an own plan against copies (delta boxes) and static obstacles, and
     the linear rows of given certificates."""
@@ -324,11 +311,12 @@ class Certifier:
         d, K = own.shape
         n = len(copies)
         half = copy_deltas(delta, n, d)
-        lam = np.empty((n, 2 * d, K))
-        for members, column in _delta_groups(half):
-            offsets = np.transpose(own[None] - copies[members], (1, 0, 2)).reshape(d, len(members) * K)
-            pair = box_certificates(offsets, column)
-            lam[members] = np.transpose(pair.lam.reshape(2 * d, len(members), K), (1, 0, 2))
+        if n:  # every copy in one call, each column against its pair's box
+            offsets = np.transpose(own[None] - copies, (1, 0, 2)).reshape(d, n * K)
+            pair = box_certificates(offsets, np.repeat(half, K, axis=1))
+            lam = np.ascontiguousarray(np.transpose(pair.lam.reshape(2 * d, n, K), (1, 0, 2)))
+        else:
+            lam = np.empty((0, 2 * d, K))
         certs = [certifier(own) for certifier in self.obstacles]
         return self.rows(own, copies, half, lam, tuple(c.lam for c in certs))
 
@@ -343,13 +331,17 @@ class Certifier:
         half = copy_deltas(delta, n, d)
         normal = pair_lam[:, :d] - pair_lam[:, d:]
         constant = np.einsum("dn,ndk->nk", half, pair_lam[:, :d] + pair_lam[:, d:])
-        o_normal = np.array([G.T @ lam for G, lam in zip(self.G, obstacle_lam, strict=True)]).reshape(-1, d, K)
-        o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam, strict=True)]).reshape(-1, K)
+        if self.G:
+            o_normal = np.array([G.T @ lam for G, lam in zip(self.G, obstacle_lam, strict=True)]).reshape(-1, d, K)
+            o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam, strict=True)]).reshape(-1, K)
+            o_value = np.einsum("odk,dk->ok", o_normal, own) - o_constant
+        else:  # no obstacles: empty rows
+            o_normal, o_constant, o_value = np.zeros((0, d, K)), np.zeros((0, K)), np.zeros((0, K))
         return Linearisation(
             pair_lam=pair_lam, pair_normal=normal, pair_constant=constant,
             pair_value=np.einsum("ndk,ndk->nk", normal, own[None] - copies) - constant,
             obstacle_lam=obstacle_lam, obstacle_normal=o_normal, obstacle_constant=o_constant,
-            obstacle_value=np.einsum("odk,dk->ok", o_normal, own) - o_constant,
+            obstacle_value=o_value,
         )
 
     def pack(self, lin: Linearisation) -> np.ndarray:
@@ -570,6 +562,9 @@ class OSQPBackend:
     def __init__(self, options: QPLocalOptions) -> None:
         self.options = options
         self._solver: Any = None
+        self._core: Any = None
+        """OSQP's compiled solver object, called directly where the interface has one."""
+        self._infinity = np.inf
 
     def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, lower: np.ndarray,
               upper: np.ndarray) -> None:
@@ -581,21 +576,37 @@ class OSQPBackend:
                            max_iter=o.max_iter, polishing=o.polish, warm_starting=True,
                            polish_refine_iter=3, check_termination=o.check_termination,
                            check_dualgap=o.check_dualgap)
+        self._core = getattr(self._solver, "_solver", None)
+        self._infinity = float(self._solver.constant("OSQP_INFTY"))
 
     def update(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, P_data: np.ndarray | None,
                A_data: np.ndarray | None) -> None:
-        matrices = {k: v for k, v in (("Px", P_data), ("Ax", A_data)) if v is not None}
-        self._solver.update(q=q, l=lower, u=upper, **matrices)
+        """New vectors and, where given, matrix values. Straight to OSQP's compiled solver: the
+        Python interface's ``update`` adds bookkeeping for derivatives (unused here) that cost
+        as much as the vector update itself; the bounds are clipped to OSQP's infinity as it
+        clips them."""
+        if self._core is None:  # an OSQP without the compiled object: its public interface
+            matrices = {k: v for k, v in (("Px", P_data), ("Ax", A_data)) if v is not None}
+            self._solver.update(q=q, l=lower, u=upper, **matrices)
+            return
+        self._core.update_data_vec(q=q, l=np.maximum(lower, -self._infinity), u=np.minimum(upper, self._infinity))
+        if P_data is not None or A_data is not None:
+            self._core.update_data_mat(P_x=P_data, P_i=None, A_x=A_data, A_i=None)
 
     def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer:
         self._solver.warm_start(x=x, y=y if y is not None else np.zeros(self._solver.m))
-        result = self._solver.solve(raise_error=False)
-        info = result.info
-        if result.x is None or result.x[0] is None:  # infeasible: no primal point
+        if self._core is None:
+            result = self._solver.solve(raise_error=False)
+            info, primal, dual = result.info, result.x, result.y
+        else:  # the interface's solve copies every field of the info into a namespace first
+            self._core.solve()
+            info, solution = self._core.info, self._core.solution
+            primal, dual = solution.x, solution.y
+        if primal is None or primal[0] is None:  # infeasible: no primal point
             return QPAnswer(x, np.zeros(self._solver.m), False, str(info.status), int(info.iter),
                             float(info.solve_time + info.update_time))
         return QPAnswer(
-            x=np.array(result.x, float), y=np.array(result.y, float),
+            x=np.array(primal, float), y=np.array(dual, float),
             solved=info.status in ("solved", "solved inaccurate"),
             status=str(info.status), iterations=int(info.iter),
             solver_time=float(info.solve_time + info.polish_time + info.update_time), exact=info.status_polish == 1,
@@ -763,16 +774,21 @@ def local_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: OC
     first = s.first_constrained_step
     X, U, goal = blocks["X"], blocks["U"], np.asarray(params["goal"], float)
     err = X - goal[:, None]
-    cost = float(np.sum((s.Q @ err[:, :-1]) * err[:, :-1]) + err[:, -1] @ s.Qf @ err[:, -1] + np.sum((s.R @ U) * U))
+    head, tail = err[:, :-1], err[:, -1]
+    cost = float(((s.Q @ head) * head).sum() + tail @ s.Qf @ tail + ((s.R @ U) * U).sum())
     rho, weight = float(params["rho"]), float(params["owner_weight"])
     diff = X[s.model.position_rows, first:] - np.asarray(params["Z"], float)
-    cost += float(np.sum(np.asarray(params["Y"], float) * diff) + 0.5 * rho * weight * np.sum(diff * diff))
+    cost += float((np.asarray(params["Y"], float) * diff).sum() + 0.5 * rho * weight * (diff * diff).sum())
     if copies:
-        diff = np.array([blocks[f"C{c}"] for c in range(copies)]) - np.array([params[f"Z{c}"] for c in range(copies)])
-        multipliers = np.array([params[f"Y{c}"] for c in range(copies)])
-        cost += float(np.sum(multipliers * diff) + 0.5 * rho * np.sum(diff * diff))
-    slacks = [v for k, v in blocks.items() if k.startswith("A")]
-    return cost + s.kappa * float(sum(np.sum(v) for v in slacks))
+        slots = range(copies)
+        diff = np.array([blocks[f"C{c}"] for c in slots]) - np.array([params[f"Z{c}"] for c in slots])
+        multipliers = np.array([params[f"Y{c}"] for c in slots])
+        cost += float((multipliers * diff).sum() + 0.5 * rho * (diff * diff).sum())
+    slack = 0.0
+    for key, value in blocks.items():
+        if key.startswith("A"):
+            slack += np.sum(value)
+    return cost + s.kappa * float(slack)
 
 
 VERIFY_TOL = 1e-7
@@ -1128,10 +1144,11 @@ class SequentialLocalQP:
         copies = pinned if pinned is not None else x[lay.C]
         delta = copy_deltas(params["delta"], n, s.dim)
         final = self.certify.rows(own, copies, delta, lin.pair_lam, lin.obstacle_lam)
-        if self.violation(X, final, params) > 0.0:
-            final = self.certify(own, copies, delta)
-        blocks = self._blocks(X, U, copies, final)
         violation = self.violation(X, final, params)
+        if violation > 0.0:
+            final = self.certify(own, copies, delta)
+            violation = self.violation(X, final, params)
+        blocks = self._blocks(X, U, copies, final)
         status = "solved" if converged else "max_rounds"
         if violation > 0.0:
             status = f"unsafe_{violation:.1e}"
