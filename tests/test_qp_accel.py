@@ -31,8 +31,10 @@ from swarmpc.solvers.qp_local import (
     OSQPBackend,
     QPAnswer,
     QPLocalLadder,
+    SeparationProof,
     box_covered,
     corners_covered,
+    rollout_matrices,
 )
 
 
@@ -96,6 +98,33 @@ def test_box_covered_decides_unions_of_boxes():
     assert not box_covered(*box, np.zeros((0, 2)), np.zeros((0, 2)))
 
 
+def covered_point_by_point(lower, upper, boxes_lower, boxes_upper):  # type: ignore[no-untyped-def]
+    """The union test's reference: every cell centre of the cuts, checked box by box in Python."""
+    centres = []
+    for axis in range(len(lower)):
+        cuts = sorted({min(max(v, lower[axis]), upper[axis]) for v in
+                       [lower[axis], upper[axis], *boxes_lower[:, axis], *boxes_upper[:, axis]]})
+        centres.append([0.5 * (a + b) for a, b in zip(cuts, cuts[1:], strict=False)] or cuts)
+    points = np.stack(np.meshgrid(*centres, indexing="ij"), axis=-1).reshape(-1, len(lower))
+    return all(any(np.all(bl <= p) and np.all(p <= bu) for bl, bu in zip(boxes_lower, boxes_upper, strict=True))
+               for p in points)
+
+
+@hyp_settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), dim=st.sampled_from([2, 3]), count=st.integers(1, 8))
+def test_box_covered_agrees_with_a_point_by_point_check(seed, dim, count):
+    """The vectorised union test (products of the axes' membership masks) decides as checking
+    every cell centre against every box one by one does: boxes on a coarse grid, so that faces
+    meet and corners touch exactly, and degenerate boxes among them."""
+    rng = np.random.default_rng(seed)
+    lower = rng.integers(0, 4, dim) * 0.25
+    upper = lower + rng.integers(0, 4, dim) * 0.25
+    boxes_lower = rng.integers(-2, 4, (count, dim)) * 0.25
+    boxes_upper = boxes_lower + rng.integers(1, 6, (count, dim)) * 0.25
+    assert box_covered(lower, upper, boxes_lower, boxes_upper) == covered_point_by_point(
+        lower, upper, boxes_lower, boxes_upper)
+
+
 @hyp_settings(max_examples=150, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), dim=st.sampled_from([2, 3]), count=st.integers(0, 12))
 def test_the_corner_filter_keeps_every_covered_box(seed, dim, count):
@@ -111,6 +140,20 @@ def test_the_corner_filter_keeps_every_covered_box(seed, dim, count):
     for k in range(K):
         if box_covered(lower[k], upper[k], boxes_lower[k], boxes_upper[k]):
             assert k in kept
+
+
+def test_the_proof_decides_a_problem_posed_again_from_its_last_answer(monkeypatch):
+    """A failed repair retried from the agent's own plan poses the same problem: the proof answers
+    it again without deciding anew, and decides anew as soon as any input differs."""
+    s, params, _, pinned = repair_problem(2, standing_at=0.55)
+    proof = SeparationProof(s, *rollout_matrices(s), margin=1e-4)
+    decided = []
+    covered = proof._covered
+    monkeypatch.setattr(proof, "_covered", lambda *args: decided.append(1) or covered(*args))
+    copies, delta = pinned["C0"][None], np.full((2, 1), 0.3)
+    assert proof.infeasible(params["x0"], copies, delta) and len(decided) == 1
+    assert proof.infeasible(params["x0"].copy(), copies.copy(), delta.copy()) and len(decided) == 1
+    assert not proof.infeasible(params["x0"], copies + np.array([[[0.0], [5.0]]]), delta) and len(decided) == 2
 
 
 @pytest.mark.parametrize("dim", [2, 3])

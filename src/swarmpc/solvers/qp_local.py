@@ -819,9 +819,14 @@ def box_covered(lower: np.ndarray, upper: np.ndarray, boxes_lower: np.ndarray, b
         centres.append(0.5 * (cuts[1:] + cuts[:-1]) if len(cuts) > 1 else cuts)
     if np.prod([len(c) for c in centres]) > max_cells:
         return False
-    points = np.stack(np.meshgrid(*centres, indexing="ij"), axis=-1).reshape(-1, len(lower))
-    inside = np.all((boxes_lower[None] <= points[:, None]) & (points[:, None] <= boxes_upper[None]), axis=2)
-    return bool(np.all(np.any(inside, axis=1)))
+    # a cell centre lies in a box when each of its coordinates lies in the box's interval on that
+    # axis: per box, the product of the axes' membership masks counts it; covered when every cell
+    # is counted by some box (exact: sums of 0/1 products)
+    counts = np.ones((len(boxes_lower), 1))
+    for axis, c in enumerate(centres):
+        member = (boxes_lower[:, axis, None] <= c[None]) & (c[None] <= boxes_upper[:, axis, None])  # (B, cells)
+        counts = (counts[:, :, None] * member[:, None, :]).reshape(len(boxes_lower), -1)
+    return bool(np.all(counts.sum(axis=0) > 0))
 
 
 class SeparationProof:
@@ -842,6 +847,9 @@ class SeparationProof:
 
     def __init__(self, s: OCPSettings, transition: np.ndarray, response: np.ndarray, margin: float) -> None:
         self.settings, self.margin = s, margin
+        self._last: tuple[bytes, bool] | None = None
+        """The last problem decided and its answer: a repair retried from another start (the
+        agent's own plan) poses the same problem again."""
         lower, upper = s.model.input_bounds(s.accel, s.speed)
         self.bounded = s.accel is not None and bool(np.all(np.isfinite(lower)) and np.all(np.isfinite(upper)))
         n = s.model.state_dim
@@ -860,8 +868,17 @@ class SeparationProof:
         the pinned copies' (n, d, K) forbidden boxes; ``delta`` (d, n) the pairs' Delta_ij."""
         if not self.bounded or not len(pinned):
             return False
+        key = b"".join(np.ascontiguousarray(a, float).tobytes() for a in (x0, pinned, delta))
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
+        answer = self._covered(np.asarray(x0, float), pinned, delta)
+        self._last = (key, answer)
+        return answer
+
+    def _covered(self, x0: np.ndarray, pinned: np.ndarray, delta: np.ndarray) -> bool:
+        """:meth:`infeasible`'s decision for a new problem."""
         d, K = self.spread.shape
-        centre = (self.transition @ np.asarray(x0, float) + self.drift).reshape(K, d).T
+        centre = (self.transition @ x0 + self.drift).reshape(K, d).T
         reach = self.settings.d_min - self.margin
         widths = np.concatenate([np.eye(d) * reach, np.full((1, d), reach / np.sqrt(d))])  # (d+1, d)
         half = (delta.T[:, None, :] + widths[None]).reshape(-1, d)  # (n (d+1), d)
