@@ -1,13 +1,14 @@
 """How much of a QP local step is the QP solver, and how much the Python around it.
 
-Flies one random 3D case of the bench family (default weights, QP local step, no deadline, so the
-run does not depend on the machine's speed) and times every local step of the ADMM iterations and
+Flies one random 3D case of the bench family (default weights, QP local step; no deadline unless
+given, so that the run does not depend on the machine's speed) and times every local step of the ADMM iterations and
 repair passes: the whole call (:class:`swarmpc.solvers.qp_local.SequentialLocalQP`), the QP
 solver's own time inside it (``LoopRecord.solver_time``: OSQP's or PIQP's reported solve, update
 and polish time), and the parts of the call by method. Prints per call the medians and totals, and
 a fingerprint of the flown states, so two checkouts can be compared call for call:
 
-    PYTHONPATH=CHECKOUT/src .venv/bin/python benchmarks/qp_overhead.py --agents 16 --seed 0 --steps 40
+    PYTHONPATH=CHECKOUT/src .venv/bin/python benchmarks/qp_overhead.py --agents 16 --seed 0 --steps 40 \\
+        [--deadline 0.1]
 
 The parts are timed by wrapping methods, which adds about a microsecond per wrapped call.
 """
@@ -30,8 +31,12 @@ PARTS = {
     "PIQPBackend": ("update", "solve"),
     "Certifier": ("__call__", "rows"),
     "LocalQPProblem": ("linear_cost", "bounds", "constraint_values"),
+    "SeparationProof": ("infeasible",),
 }
 """The methods of :mod:`swarmpc.solvers.qp_local` timed as parts of a call."""
+
+FUNCTIONS = ("box_covered",)
+"""Module functions of :mod:`swarmpc.solvers.qp_local` timed as parts of a call."""
 
 
 def _timed(function: Callable[..., Any], label: str, totals: dict[str, list[float]]) -> Callable[..., Any]:
@@ -44,8 +49,9 @@ def _timed(function: Callable[..., Any], label: str, totals: dict[str, list[floa
     return wrapper
 
 
-def measure(agents: int, seed: int, steps: int) -> dict[str, Any]:
-    """Fly the case; per-call wall and solver times, the parts' totals, the states' fingerprint."""
+def measure(agents: int, seed: int, steps: int, deadline: float | None = None) -> dict[str, Any]:
+    """Fly the case; per-call wall and solver times, the parts' totals, the states' fingerprint
+    (``deadline``: ``solver.deadline``, which makes the run depend on the machine's speed)."""
     from swarmpc.bench import BenchCase
     from swarmpc.simulation.loop import simulate
     from swarmpc.solvers import qp_local
@@ -54,8 +60,9 @@ def measure(agents: int, seed: int, steps: int) -> dict[str, Any]:
     calls: list[tuple[float, float]] = []  # (wall, solver) per SequentialLocalQP.solve
     originals = [(getattr(qp_local, cls), name, getattr(getattr(qp_local, cls), name))
                  for cls, names in PARTS.items() for name in names]
+    originals += [(qp_local, name, getattr(qp_local, name)) for name in FUNCTIONS]
     for owner, name, function in originals:
-        setattr(owner, name, _timed(function, f"{owner.__name__}.{name}", parts))
+        setattr(owner, name, _timed(function, f"{getattr(owner, '__name__', 'qp_local').split('.')[-1]}.{name}", parts))
     whole = qp_local.SequentialLocalQP.solve
 
     def solve(self: Any, *args: Any, **kwargs: Any) -> Any:
@@ -65,7 +72,8 @@ def measure(agents: int, seed: int, steps: int) -> dict[str, Any]:
 
     qp_local.SequentialLocalQP.solve = solve  # type: ignore[method-assign]
     try:
-        case = BenchCase(family="random", agents=agents, seed=seed, local="qp", max_steps=steps, settings=())
+        settings = () if deadline is None else (("solver.deadline", deadline),)
+        case = BenchCase(family="random", agents=agents, seed=seed, local="qp", max_steps=steps, settings=settings)
         began = time.perf_counter()
         result = simulate(case.scenario())
         wall = time.perf_counter() - began
@@ -82,8 +90,9 @@ def main() -> None:
     parser.add_argument("--agents", type=int, default=16)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=40)
+    parser.add_argument("--deadline", type=float, default=None, help="solver.deadline [s] (default: none)")
     args = parser.parse_args()
-    m = measure(args.agents, args.seed, args.steps)
+    m = measure(args.agents, args.seed, args.steps, args.deadline)
     calls = m["calls"]
     python = calls[:, 0] - calls[:, 1]
     print(f"random 3D M = {args.agents}, seed {args.seed}: {m['steps']} steps, {m['iterations']} ADMM iterations, "
