@@ -106,8 +106,8 @@ def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> Certificates
     q, single = _columns(offsets)
     d, K = q.shape
     half = np.asarray(half_size, float)
-    if half.ndim == 2 and half.shape[1] == K and K > 1:
-        if half.shape[0] != d:
+    if half.ndim == 2 and half.shape[1] != 1:  # one box per column
+        if half.shape != (d, K):
             raise ValueError(f"box_certificates: half_size per column must be ({d}, {K}), got {half.shape}")
     else:
         half = half.reshape(-1, 1)  # (d, 1) or (1, 1): broadcast on the columns

@@ -233,21 +233,19 @@ class _LocalProblems:
 
     def state(self, i: int, neighbours: tuple[int, ...]) -> _AgentState:
         """A fresh state of agent i holding copies of ``neighbours`` (in slot order), with its problems."""
-        return _AgentState(neighbours, self._problem(i, neighbours), qp=self._qp(i, neighbours))
-
-    def _problem(self, i: int, neighbours: tuple[int, ...]) -> CompiledNLP:
         kinds = tuple(NeighbourKind.of(self.swarm.agents[j]) for j in neighbours)
-        key = (i, kinds)
-        if key not in self._problems:
-            self._problems[key] = build_footprint_local(self.swarm.agents[i], kinds,
-                                                        owner_weight=self.options.owner_weight)
-        return self._problems[key]
+        return _AgentState(neighbours, self._problem(i, kinds), qp=self._qp(i, kinds))
 
-    def _qp(self, i: int, neighbours: tuple[int, ...]) -> FootprintLocalQP | None:
-        """Agent i's QP local step for these neighbours (``local: qp``), else None."""
+    def _problem(self, i: int, kinds: tuple[NeighbourKind, ...]) -> CompiledNLP:
+        if (i, kinds) not in self._problems:
+            self._problems[(i, kinds)] = build_footprint_local(self.swarm.agents[i], kinds,
+                                                               owner_weight=self.options.owner_weight)
+        return self._problems[(i, kinds)]
+
+    def _qp(self, i: int, kinds: tuple[NeighbourKind, ...]) -> FootprintLocalQP | None:
+        """Agent i's QP local step for neighbours of these kinds (``local: qp``), else None."""
         if self.options.local != "qp":
             return None
-        kinds = tuple(NeighbourKind.of(self.swarm.agents[j]) for j in neighbours)
         if (i, kinds) not in self._qps:
             self._qps[(i, kinds)] = FootprintLocalQP(self.swarm.agents[i], kinds, self.options.qp,
                                                      self.options.owner_weight)
