@@ -21,6 +21,7 @@ from swarmpc.simulation.controller import Controller
 from swarmpc.simulation.loop import simulate
 from swarmpc.simulation.results import deadline_summary, write_run
 from swarmpc.solvers.admm import StepClock
+from swarmpc.solvers.admm.clock import BatchBudget
 from swarmpc.solvers.executors import SerialExecutor
 
 CROSSING_FROM = 20
@@ -119,6 +120,33 @@ def test_a_deadline_stop_by_selection_keeps_the_swarm_apart(crossing):
     assert np.linalg.norm(applied[-1, :, :d] - applied[0, :, :d], axis=1).min() > 0.1  # the swarm moved on
 
 
+@pytest.mark.parametrize("batches", [0, 1, 2])
+def test_a_deadline_stop_on_a_budget_repairs_what_fits_and_selects_the_rest(crossing, monkeypatch, batches):
+    """paper-2d at its crossing under a 1 ms deadline with ``deadline_repair: budget``, its budget
+    made to allow ``batches`` repair batches a step: the repair pass is cut short there, the
+    selection pass chooses between what it left and the committed plans, and the plans and the
+    flown states keep the bodies apart."""
+    cut: list[int] = []
+
+    def allows(self: BatchBudget) -> bool:
+        self.asked = getattr(self, "asked", 0) + 1
+        if self.asked > batches:
+            cut.append(self.asked)
+            return False
+        return True
+
+    monkeypatch.setattr(BatchBudget, "allows", allows)
+    scn, states = crossing
+    tiny = scn.with_updates(**{"solver.deadline": 1e-3, "solver.admm.deadline_repair": "budget"})
+    applied, plans, records = fly(tiny, states, 20)
+    assert sum(r.deadline_stop for r in records) >= 10 and cut  # repair passes were cut short
+    d = scn.dim
+    assert count_body_collisions(applied[:, :, :d], scn.bodies) == 0
+    for k, plan in enumerate(plans):
+        assert count_body_collisions(np.transpose(plan[:, :, :d], (1, 0, 2)), scn.bodies) == 0, f"step {k}"
+    assert np.linalg.norm(applied[-1, :, :d] - applied[0, :, :d], axis=1).max() > 0.1  # the swarm moved on
+
+
 def test_a_deadline_that_never_binds_changes_nothing(crossing):
     scn, states = crossing
     plain, _, plain_records = fly(scn, states, 4)
@@ -165,6 +193,33 @@ def test_the_clock_counts_a_batch_as_its_slowest_agent_and_stops_before_an_overr
     clock.solve(Batch(0.2, [0.2]), [])  # a repair's re-plan: one agent, all of it on the path
     assert clock.elapsed()[1] == pytest.approx(0.9)
     assert StepClock().next_iteration() and StepClock(None).next_iteration()
+
+
+def test_a_batch_budget_allows_a_batch_while_the_longest_batch_so_far_still_fits():
+    fake = FakeTime()
+    clock = StepClock(deadline=1.0, clock=fake.perf_counter)
+    assert clock.next_iteration()
+    fake.now += 0.2
+    assert clock.next_iteration()  # an iteration's share: 0.2
+    fake.now += 0.2
+    budget = BatchBudget(clock)
+    assert budget.longest == pytest.approx(0.2)  # at first a batch is estimated as an iteration
+    assert budget.allows()  # 0.4 + 0.2 <= 1
+    fake.now += 0.3  # that batch took longer than an iteration
+    assert budget.allows()  # 0.7 + 0.3 <= 1
+    assert budget.longest == pytest.approx(0.3)
+    fake.now += 0.05
+    assert not budget.allows()  # 0.75 + 0.3 > 1
+    assert list(budget.history) == pytest.approx([0.3, 0.05]) and budget.closed_at == pytest.approx(0.75)
+    fresh = StepClock(deadline=1.0, clock=fake.perf_counter)
+    assert fresh.next_iteration()
+    later = BatchBudget(fresh, budget.history)  # the next step: its batches remembered
+    assert later.longest == pytest.approx(0.3)
+    assert later.allows()  # 0 + 0.3 <= 1
+    assert not BatchBudget(fresh, budget.history, margin=0.75).allows()  # 0 + 0.3 + 0.75 > 1
+    roomy = BatchBudget(StepClock(None, clock=fake.perf_counter))
+    fake.now += 100.0
+    assert roomy.allows() and roomy.allows()
 
 
 def test_the_run_folder_contract_documents_the_critical_path():

@@ -519,13 +519,14 @@ class ADMMOptions(_Frozen):
         "re-planned around. `false`: the last iterate's plans are applied as they are, which may leave pairs "
         "in conflict (a deadline stop is repaired anyway).",
     )
-    deadline_repair: Literal["sequential", "select"] = Field(
+    deadline_repair: Literal["sequential", "select", "budget"] = Field(
         default="sequential",
         description="How a step stopped by `solver.deadline` is made safe: `sequential` every coupled agent "
         "re-plans, one after another, against its neighbours' plans; `select` each agent flies its new plan or its "
         "last step's plan shifted, chosen so every pair that can meet stays clear, and one agent of each pair of "
         "those that conflict re-plans (fewer overruns, a slower swarm: at 64 agents 1.2-2 times the time to the "
-        "goals).",
+        "goals); `budget` the sequential re-plans while the deadline allows, then the selection over what they "
+        "left (the selection's own re-plans only where two shifted plans conflict).",
     )
     repair_order: Literal["index", "colour"] = Field(
         default="index",

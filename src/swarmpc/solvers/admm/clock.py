@@ -16,6 +16,10 @@ from typing import Any
 from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, TimedResult
 from swarmpc.solvers.executors import Executor
 
+BATCH_WINDOW = 20
+"""Batches of re-plans on a budget whose longest share of the critical path estimates the next
+one's (:class:`BatchBudget`)."""
+
 ESTIMATE_WINDOW = 3
 """Iterations whose largest share of the critical path estimates the next one's
 (:meth:`StepClock.next_iteration`)."""
@@ -121,3 +125,54 @@ class StepClock:
             return True
         self.stopped = True
         return False
+
+    def iteration_estimate(self) -> float:
+        """The largest share of the critical path of the last :data:`ESTIMATE_WINDOW` iterations
+        (0 before the second iteration began)."""
+        return max(self._shares, default=0.0)
+
+
+class BatchBudget:
+    """Whether one more batch of re-plans fits the step's deadline (:meth:`allows`).
+
+    A batch is estimated at the longest share of the critical path of the last
+    :data:`BATCH_WINDOW` batches asked on a budget (``history``, kept by the solver across steps;
+    a repair batch's calls run more certificate rounds than an iteration's and may fail and
+    retry), and no shorter than the clock's estimate of an ADMM iteration (one local step per
+    agent, as a batch is). ``margin`` is kept free after the last batch for the coordinator's work
+    that follows it. Without a deadline every batch fits.
+    """
+
+    def __init__(self, clock: StepClock, history: deque[float] | None = None, margin: float = 0.0) -> None:
+        self.clock = clock
+        self.history: deque[float] = deque(maxlen=BATCH_WINDOW) if history is None else history
+        self.margin = margin
+        self.longest = max(clock.iteration_estimate(), max(self.history, default=0.0))
+        self.refused = False
+        """True once :meth:`allows` refused a batch."""
+        self.closed_at: float | None = None
+        """The critical path [s] when the last batch ended or was refused (None: none asked)."""
+        self._began: float | None = None
+
+    def close(self) -> float:
+        """End the batch in progress, if any (its share joins the history); the critical path now."""
+        now = self.clock.elapsed()[1]
+        if self._began is not None:
+            share = now - self._began
+            self.history.append(share)
+            self.longest = max(self.longest, share)
+        self._began = None
+        self.closed_at = now
+        return now
+
+    def allows(self) -> bool:
+        """Whether to ask the next batch (which begins now): the critical path so far plus the
+        estimate of a batch plus the margin stays within the deadline. Call it before each
+        batch, and :meth:`close` after the last."""
+        now = self.close()
+        deadline = self.clock.deadline
+        if deadline is not None and now + self.longest + self.margin > deadline:
+            self.refused = True
+            return False
+        self._began = now
+        return True

@@ -91,7 +91,7 @@ class ADMMConfig:
     :meth:`ADMMSolver.plan`). With ``local`` "qp" a failed QP call is not handed to IPOPT, whose
     calls take longer than a step's budget (:attr:`LocalRequest.handover`)."""
 
-    deadline_repair: Literal["sequential", "select"] = "sequential"
+    deadline_repair: Literal["sequential", "select", "budget"] = "sequential"
     """How a step stopped by the deadline is made safe. "sequential" (default): the repair pass
     (:meth:`~swarmpc.solvers.admm.repair.Repair.sequential`), every coupled agent re-planning one
     after another. "select": no agent re-plans unless it must; each flies its new plan or the plan
@@ -100,7 +100,11 @@ class ADMMConfig:
     plans that conflict re-plans, and so do agents sent back two steps in a row. "select"
     overruns the deadline less often but the swarm is slower: at M = 16 a quarter of the misses
     at a 16 % higher cost, at M = 64 1.2-2 times the time to the goals
-    (evidence: docs/lab/admm.md#deadline-selection)."""
+    (evidence: docs/lab/admm.md#deadline-selection). "budget": the repair pass while the deadline
+    allows (:class:`~swarmpc.solvers.admm.clock.BatchBudget`: a batch is asked only if the longest
+    of the recent batches still fits), then the selection pass over what it left: agents it did
+    not reach fly their last iterate or their committed plan, whichever keeps clear; a cut pass
+    keeps the largest reserve for the next steps (evidence: docs/lab/admm.md#deadline-budget)."""
 
     repair_order: Literal["index", "colour"] = "index"
     """The order of the repair pass (:meth:`~swarmpc.solvers.admm.repair.Repair.sequential`).
@@ -167,8 +171,8 @@ def _first_problem(cfg: ADMMConfig) -> str | None:
         return f"rho_bounds: must be 0 < low <= high, got {cfg.rho_bounds!r}"
     if cfg.carry_multipliers not in ("stable", "always", "never"):
         return f"carry_multipliers: expected stable, always or never, got {cfg.carry_multipliers!r}"
-    if cfg.deadline_repair not in ("sequential", "select"):
-        return f"deadline_repair: expected sequential or select, got {cfg.deadline_repair!r}"
+    if cfg.deadline_repair not in ("sequential", "select", "budget"):
+        return f"deadline_repair: expected sequential, select or budget, got {cfg.deadline_repair!r}"
     if cfg.repair_order not in ("index", "colour"):
         return f"repair_order: expected index or colour, got {cfg.repair_order!r}"
     if cfg.local not in ("qp", "ipopt"):

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from swarmpc.formulation.ocp import OCPSettings
+from swarmpc.solvers.admm.clock import BatchBudget
 from swarmpc.solvers.admm.graph import CouplingGraph
 from swarmpc.solvers.admm.messages import LocalResult, StepRequests
 from swarmpc.solvers.admm.replan import Replanner, Solve
@@ -72,11 +73,16 @@ def committed_plans(
 class Repair:
     """The safety passes of one MPC step, asking the agents through ``solve``."""
 
-    def __init__(self, requests: StepRequests, safety: SafetyChecks, solve: Solve) -> None:
+    def __init__(
+        self, requests: StepRequests, safety: SafetyChecks, solve: Solve, budget: BatchBudget | None = None,
+    ) -> None:
         self.requests = requests
         self.safety = safety
         self.replan = Replanner(requests, solve)
-        self.selection = Selection(requests, safety, self.replan)
+        self.budget = budget
+        """With ``config.deadline_repair`` "budget": how many batches the first repair pass and the
+        selection pass's refreshing re-plans may ask (None: all)."""
+        self.selection = Selection(requests, safety, self.replan, budget)
         self.settle = Settle(requests, safety)
 
     def make_safe(
@@ -97,18 +103,27 @@ class Repair:
         leaves (with candidate pairs its new plans bring into conflict) goes through the repair
         passes above, for those agents. Agents that fly their committed plans after
         :data:`~swarmpc.solvers.admm.selection.STALE_STEPS` steps of it (``waiting``, (M,)) re-plan
-        first (:meth:`~swarmpc.solvers.admm.selection.Selection.refresh`). Last, with
+        first (:meth:`~swarmpc.solvers.admm.selection.Selection.refresh`). With ``committed`` and a
+        :attr:`budget`: the repair pass first, for as many batches as the budget allows (a pass
+        cut short leaves the agents it did not reach on their last iterates, which the repaired
+        agents planned against), and the selection pass over its plans; the refreshing re-plans
+        are asked on the same budget. Last, with
         ``stranded_check``, the settling pass (:class:`~swarmpc.solvers.admm.settle.Settle`)."""
         times, failures = np.zeros(len(results)), 0
         states = self.requests.states
         agents: list[int] | None = None  # None: the full pass
+        rounds = self.requests.config.repair_rounds
+        if repair_all and committed is not None and self.budget is not None:
+            previous = results
+            results = self.sequential(graph, z, rho, results, budget=self.budget)
+            new, failed = new_solves(results, previous)
+            times, failures = times + new, failures + failed
         if repair_all and committed is not None:
             previous = results
             results, graph, left = self.selection(graph, z, rho, results, committed, waiting)
             new, failed = new_solves(results, previous)
             times, failures = times + new, failures + failed
             repair_all, graph, agents = bool(left), graph.coupled(left), _agents_of(left)
-        rounds = self.requests.config.repair_rounds
         for round_ in range(rounds if repair_all else 0):
             previous = results
             results = self.sequential(graph, z, rho, results, agents)
@@ -135,7 +150,7 @@ class Repair:
 
     def sequential(
         self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult],
-        agents: list[int] | None = None,
+        agents: list[int] | None = None, budget: BatchBudget | None = None,
     ) -> list[LocalResult]:
         """Consensus repair: agents re-plan one after another against the others' current own
         plans (held fixed). Each agent respects the final plans of those before it and the plans
@@ -158,7 +173,9 @@ class Repair:
         The re-plans are asked level by level (:class:`LevelSchedule`): a re-plan reads only its
         neighbours' plans, so it waits only for the earlier re-plans of its neighbours and itself,
         and each level, asked in one batch, gives the answers of asking the order one agent after
-        another; a batch costs the step's critical path only its slowest re-plan."""
+        another; a batch costs the step's critical path only its slowest re-plan. ``budget``: a
+        level is asked only if it allows (:meth:`BatchBudget.allows`); the pass returns at the first
+        it refuses, with no re-plans around failures (the selection pass that follows covers them)."""
         repaired = list(results)
         neighbours = graph.neighbours
         if agents is None:
@@ -170,6 +187,8 @@ class Repair:
                 schedule.append(i)
         retried: set[int] = set()
         while batch := schedule.pop():
+            if budget is not None and not budget.allows():
+                return repaired  # the selection pass makes what is left safe
             rescue = [True] * len(batch)  # every failed call may fly a rescue plan
             for i, answer in zip(batch, self.replan(batch, graph, z, rho, repaired, rescue), strict=True):
                 repaired[i] = answer
@@ -177,6 +196,8 @@ class Repair:
                 if not repaired[i].success and i not in retried:
                     retried.add(i)
                     schedule.append(i)
+        if budget is not None:
+            budget.close()
         failures = [k for k in range(len(results)) if not repaired[k].success]
         self._replan_around(failures, graph, z, rho, repaired)
         return repaired

@@ -10,6 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from swarmpc.solvers.admm.clock import BatchBudget
 from swarmpc.solvers.admm.graph import CouplingGraph
 from swarmpc.solvers.admm.messages import LocalResult, StepRequests
 from swarmpc.solvers.admm.replan import Replanner
@@ -25,10 +26,15 @@ class Selection:
     """The selection pass of one MPC step (:meth:`__call__`), its clearing and refreshing re-plans
     asked through ``replan``."""
 
-    def __init__(self, requests: StepRequests, safety: SafetyChecks, replan: Replanner) -> None:
+    def __init__(
+        self, requests: StepRequests, safety: SafetyChecks, replan: Replanner, budget: BatchBudget | None = None,
+    ) -> None:
         self.requests = requests
         self.safety = safety
         self.replan = replan
+        self.budget = budget
+        """How many batches :meth:`refresh` may ask (None: all): its re-plans help a waiting agent
+        on, and the plans are safe without them."""
 
     def __call__(
         self, graph: CouplingGraph, z: np.ndarray, rho: float, iterates: list[LocalResult],
@@ -142,12 +148,14 @@ class Selection:
         graph = graph.coupled((int(first[k]), int(second[k])) for k in hits)
         repaired = list(chosen)
         pending = deque(i for i in sorted(agents, reverse=True) if graph.neighbours[i])
-        while pending:
+        while pending and (self.budget is None or self.budget.allows()):
             batch = independent_run(pending, graph.neighbours)
             answers = self.replan(batch, graph, z, rho, repaired, [False] * len(batch), quick=True)
             for answer in answers:
                 if answer.success and self._clear_of(repaired, answer, first, second):
                     repaired[answer.agent] = answer
+        if self.budget is not None:
+            self.budget.close()
         return repaired, graph
 
     def clear(

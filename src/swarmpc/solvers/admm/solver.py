@@ -11,7 +11,7 @@ import numpy as np
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.model.geometry import as_bodies
 from swarmpc.solvers.admm.agent import LocalAgentFactory
-from swarmpc.solvers.admm.clock import StepClock, TimedAgentFactory
+from swarmpc.solvers.admm.clock import BATCH_WINDOW, BatchBudget, StepClock, TimedAgentFactory
 from swarmpc.solvers.admm.config import ADMMConfig
 from swarmpc.solvers.admm.consensus import (
     Carryover,
@@ -100,6 +100,12 @@ class ADMMSolver:
         self._safety_times: deque[float] = deque(maxlen=RESERVE_WINDOW)
         """Critical-path seconds the safety passes of the last steps that repaired took (see
         :meth:`_reserve`)."""
+        self._batch_shares: deque[float] = deque(maxlen=BATCH_WINDOW)
+        """Critical-path seconds of the last batches of re-plans asked on a budget
+        (``config.deadline_repair`` "budget"; :class:`~swarmpc.solvers.admm.clock.BatchBudget`)."""
+        self._after_batches: deque[float] = deque(maxlen=RESERVE_WINDOW)
+        """Critical-path seconds the last budget steps spent after their last batch: the margin kept
+        free after a batch."""
         self._waiting = np.zeros(num_agents, int)
         """Per agent, the steps in a row it has flown a fallback or committed plan (the selection
         pass's priority)."""
@@ -192,14 +198,20 @@ class ADMMSolver:
         repaired = not run.converged and repair
         before = self._clock.elapsed()[1]
         committed = None
-        if self._clock.stopped and cfg.deadline_repair == "select":
+        budget = None
+        if self._clock.stopped and cfg.deadline_repair in ("select", "budget"):
             committed = committed_plans(states, self._applied, s, run.results)
-        safe = Repair(requests, self.safety, self._solve).make_safe(
+            if cfg.deadline_repair == "budget":
+                budget = BatchBudget(self._clock, self._batch_shares, max(self._after_batches, default=0.0))
+        safe = Repair(requests, self.safety, self._solve, budget).make_safe(
             run.graph, run.z, run.rho, run.results, repaired, repair, committed, self._waiting)
+        if budget is not None and budget.closed_at is not None:
+            self._after_batches.append(self._clock.elapsed()[1] - budget.closed_at)
         self._waiting = np.where([r.fallback for r in safe.results], self._waiting + 1, 0)
         self._applied = (np.array([r.states for r in safe.results]), np.array([r.inputs for r in safe.results]))
-        if repaired:
-            self._safety_times.append(self._clock.elapsed()[1] - before)
+        if repaired:  # a pass the budget cut short needed more than it took: the largest reserve
+            cut = budget is not None and budget.refused
+            self._safety_times.append(np.inf if cut else self._clock.elapsed()[1] - before)
         # the next step's consensus starts from the plans actually applied: after a repair pass
         # the average z of a non-converged iterate is not what any agent flies
         self.carryover = Carryover(own_positions(safe.results), safe.graph.neighbours,
