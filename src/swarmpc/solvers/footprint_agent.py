@@ -14,7 +14,7 @@ steps) and the answers with their IPOPT multipliers stay inside the agent, which
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -245,20 +245,14 @@ class FootprintLocalAgent:
         """The local solve in ``problem``, warm from its last answer; when that fails (or there is
         none), cold from its last plan (or the guess) with certificates seeded afresh. Keeps the
         answer when one succeeds; True on success."""
-        agents, params, fixed = self.recipe.swarm.agents, request.params, request.fixed
+        params, fixed = request.params, request.fixed
         previous = problem.solution
-        neighbours = [agents[j] for j in problem.neighbours]
-        copies = [fixed[f"C{slot}"] if fixed else params[f"Z{slot}"] for slot in range(len(neighbours))]
+        copies = [fixed[f"C{slot}"] if fixed else params[f"Z{slot}"] for slot in range(len(problem.neighbours))]
         if problem.qp is not None:
             if self._solve_qp(problem, request, copies, tally):
                 return True
             previous = None  # hand the call to IPOPT, cold: a QP answer has no IPOPT multipliers
-        starts: list[tuple[dict[str, np.ndarray], np.ndarray | None, np.ndarray | None]] = []
-        if previous is not None and previous.lam_x.size:
-            starts.append((previous.x, previous.lam_x, previous.lam_g))
-        plan = request.guess if previous is None or fixed else np.asarray(previous.x["X"]).T
-        starts.append((footprint_local_guess(self.agent, plan, neighbours, copies), None, None))
-        for point, lam_x, lam_g in starts:
+        for point, lam_x, lam_g in self._starts(problem, request, previous, copies):
             solution = problem.nlp.solve(params, point, lam_x, lam_g, fixed)
             tally.seconds += solution.solve_time
             if solution.success:
@@ -266,6 +260,18 @@ class FootprintLocalAgent:
                 return True
             tally.failures += 1
         return False
+
+    def _starts(
+        self, problem: _Problem, request: FootprintSolve, previous: NLPSolution | None, copies: list[np.ndarray],
+    ) -> Iterator[tuple[dict[str, np.ndarray], np.ndarray | None, np.ndarray | None]]:
+        """The starts of :meth:`_solve` in turn: warm (the previous answer with its multipliers)
+        when there is one, then cold. The cold start (certificates from the geometry, a sizeable
+        share of a warm call's time) is made only when asked for, after the warm start failed."""
+        if previous is not None and previous.lam_x.size:
+            yield previous.x, previous.lam_x, previous.lam_g
+        plan = request.guess if previous is None or request.fixed else np.asarray(previous.x["X"]).T
+        neighbours = [self.recipe.swarm.agents[j] for j in problem.neighbours]
+        yield footprint_local_guess(self.agent, plan, neighbours, copies), None, None
 
     def _solve_qp(self, problem: _Problem, request: FootprintSolve, copies: list[np.ndarray], tally: _Tally) -> bool:
         """The QP local step, from the problem's last answer (its plan, inputs and copies) unless
