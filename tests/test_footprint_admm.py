@@ -226,7 +226,7 @@ def test_an_agent_standing_still_restarts_from_the_guess_when_its_goal_moves() -
     goals = [np.array([2.0, 0.0, 0.0, 0.0]), np.array([-2.0, 0.0, 0.0, 0.0])]
     assert solver._restarts(goals) == frozenset()  # no last step yet
     solver._goals = [g.copy() for g in goals]
-    solver._agents = [SimpleNamespace(solution=SimpleNamespace(x={"X": plan.T})) for plan in (still, moving)]
+    solver._agents = [SimpleNamespace(answer=SimpleNamespace(states=plan)) for plan in (still, moving)]
     assert solver._restarts(goals) == frozenset()  # same goals
     detour = [g + np.array([0.0, 1.0, 0.0, 0.0]) for g in goals]
     assert solver._restarts(detour) == frozenset({0})  # the moving agent keeps its warm start

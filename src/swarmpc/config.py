@@ -678,9 +678,9 @@ class SolverConfig(_Frozen):
         default="admm",
         description="`admm`: consensus ADMM over the agents' local problems; `centralized`: one NLP over the "
         "whole swarm. A scenario with car agents (`agents[].model: car`) takes both: its ADMM agrees on footprint "
-        "poses (`executor.type: serial`; `solver.local: qp` solves each local step as a sequence of QPs about "
-        "the plan; of the `admm` subsection only `owner_weight` and `pair_copies` apply), its centralised NLP ignores "
-        "`solver.local` and the ADMM keys.",
+        "poses (its local steps run on any `executor`; `solver.local: qp` solves each local step as a sequence of "
+        "QPs about the plan; of the `admm` subsection only `owner_weight` and `pair_copies` apply), its centralised "
+        "NLP ignores `solver.local` and the ADMM keys.",
     )
     rho: float = Field(default=10.0, gt=0, description="ADMM penalty parameter")
     max_iter: int = Field(default=100, ge=1, le=MAX_ADMM_ITERATIONS, description="ADMM iteration cap per MPC step")
@@ -1371,14 +1371,12 @@ def _weight_error(which: str, value: ScalarOrMatrix, size: int) -> str | None:
 
 
 def _agent_model_errors(scn: Scenario, n: int) -> list[str]:
-    """What agent ``n``'s model cannot do in this scenario (a car: planar, a serial executor, no ADMM
-    deadline, a numeric terminal weight, the nominal plant without noise), each a message naming the field."""
+    """What agent ``n``'s model cannot do in this scenario (a car: planar, no ADMM deadline, a
+    numeric terminal weight, the nominal plant without noise), each a message naming the field."""
     if not scn.agents[n].model.is_car:
         return []
     problems = {
         f"agents[{n}].model: a car moves in the plane only (dim 2), got dim {scn.dim}": scn.dim != 2,
-        f"executor.type: {scn.executor.type} does not apply to a swarm with cars (its ADMM solves in the calling "
-        "process); use serial": scn.executor.type != "serial",
         "solver.deadline: the ADMM of a swarm with cars has no deadline (it runs each step to its tolerance); "
         "remove the key": scn.solver.method == "admm" and scn.solver.deadline is not None,
         f"weights.Qf: lqr needs a linear model and agents[{n}] is a car; give a number or a matrix "

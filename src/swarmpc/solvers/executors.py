@@ -1,8 +1,10 @@
 """Where the agents' local solves run: one interface, several executors.
 
-An executor hosts one :class:`~swarmpc.solvers.admm.LocalAgent` per agent (built by a picklable
-factory, so a worker process can build its own) and runs a batch of requests, returning results in
-request order. The ADMM algorithm never changes with the executor; only where the work happens does.
+An executor hosts one local agent per agent (a :class:`~swarmpc.solvers.admm.LocalAgent` of the
+point ADMM, a :class:`~swarmpc.solvers.footprint_agent.FootprintLocalAgent` of the car ADMM; built
+by a picklable factory, so a worker process can build its own) and runs a batch of requests,
+returning results in request order. The ADMM algorithm never changes with the executor; only where
+the work happens does.
 """
 
 from __future__ import annotations
@@ -157,7 +159,10 @@ class ProcessExecutor:
         for request in requests:
             batches.setdefault(self._home[request.agent], []).append(request)
         for worker, batch in batches.items():
-            self._connections[worker].send(batch)
+            try:
+                self._connections[worker].send(batch)
+            except OSError:  # the worker's end of the pipe closed: it died
+                raise ExecutorError("--executor: a worker process ended unexpectedly") from None
         answers: dict[int, Any] = {}
         for worker, batch in batches.items():
             for request, result in zip(batch, self._receive(self._connections[worker]), strict=True):
@@ -183,6 +188,11 @@ STEP_FIELDS = ("state", "goal", "delta", "guess", "neighbour_states", "neighbour
 executor sends each of them again only when it changed since it last went to that agent."""
 
 
+def _step_fields(request: Any) -> tuple[str, ...]:
+    """The :data:`STEP_FIELDS` a request has (a request type without them travels whole)."""
+    return tuple(f for f in STEP_FIELDS if hasattr(request, f))
+
+
 def _same(a: Any, b: Any) -> bool:
     if isinstance(a, tuple) and isinstance(b, tuple):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
@@ -198,9 +208,9 @@ class RequestDeduplicator:
         self._sent: dict[int, dict[str, Any]] = {}
 
     def pack(self, request: Any) -> tuple[Any, tuple[str, ...]]:
-        sent = self._sent.setdefault(request.agent, {})
-        kept = tuple(f for f in STEP_FIELDS if f in sent and _same(sent[f], getattr(request, f)))
-        sent.update({f: getattr(request, f) for f in STEP_FIELDS})
+        sent, names = self._sent.setdefault(request.agent, {}), _step_fields(request)
+        kept = tuple(f for f in names if f in sent and _same(sent[f], getattr(request, f)))
+        sent.update({f: getattr(request, f) for f in names})
         return dataclasses.replace(request, **{f: None for f in kept}), kept
 
 
@@ -214,7 +224,7 @@ class RequestCache:
         request, kept = packed
         held = self._held.setdefault(request.agent, {})
         request = dataclasses.replace(request, **{f: held[f] for f in kept})
-        held.update({f: getattr(request, f) for f in STEP_FIELDS})
+        held.update({f: getattr(request, f) for f in _step_fields(request)})
         return request
 
 

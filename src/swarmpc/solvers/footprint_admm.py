@@ -32,9 +32,14 @@ One MPC step (:meth:`FootprintADMMSolver.plan`):
 A local solve that fails warm (from the agent's previous answer) is tried once more cold: from
 the agent's last plan with every certificate seeded afresh from the geometry.
 
-The local solves of an iteration are independent; this solver runs them one after the other in
-the calling process and reports the step's critical path as if each agent had its own core (per
-iteration the slowest local solve, plus the coordinator's work).
+The local solves of an iteration are independent: each agent is a
+:class:`~swarmpc.solvers.footprint_agent.FootprintLocalAgent` (its problems, its last answer, its
+solves), hosted by any executor of :mod:`swarmpc.solvers.executors` (serial, thread, process, ray),
+and the solver (the coordinator: coupling, consensus, multipliers, safety checks, the order of the
+repairs) talks to it only by messages. An iteration's solves are one batch: every agent solves
+before the consensus update, and the plans are the same, bit for bit, whatever the executor. The
+step's critical path is reported as if each agent had its own core (per iteration the slowest
+local solve, plus the coordinator's consensus update; every repair solve in full).
 """
 
 from __future__ import annotations
@@ -46,22 +51,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from swarmpc.config import SolverConfig
-from swarmpc.formulation.footprint_certificates import PolytopeFootprintCertifier, rectangle_pair_certificates
-from swarmpc.formulation.footprint_local import (
-    NeighbourKind,
-    build_footprint_local,
-    consensus_block,
-    pair_first_step,
-    slot_size,
-)
+from swarmpc.formulation.footprint_local import consensus_block, slot_size
 from swarmpc.formulation.footprint_ocp import FootprintAgent, FootprintSwarm
-from swarmpc.formulation.nlp import CompiledNLP, NLPSolution, shift_blocks
 from swarmpc.model.footprint import rectangle_distance
 from swarmpc.solvers.base import PlanStep, braking_plan
-from swarmpc.solvers.dual_seed import pair_seed
+from swarmpc.solvers.executors import Executor, SerialExecutor
+from swarmpc.solvers.footprint_agent import (
+    FootprintAgentFactory,
+    FootprintAnswer,
+    FootprintResult,
+    FootprintSolve,
+    FootprintStart,
+    footprint_local_guess,
+)
 from swarmpc.solvers.footprint_central import nearest_heading, straight_guess
-from swarmpc.solvers.footprint_qp import FootprintLocalQP
-from swarmpc.solvers.guesses import agent_guess_blocks
 from swarmpc.solvers.qp_local import QPLocalOptions
 
 __all__ = ["FootprintADMMOptions", "FootprintADMMSolver", "coupled_pairs", "footprint_local_guess", "plan_violations"]
@@ -132,45 +135,6 @@ def coupled_pairs(swarm: FootprintSwarm, states: np.ndarray, margin: float) -> l
     return out
 
 
-def _car_obstacle_blocks(own: FootprintAgent, states: np.ndarray) -> dict[str, np.ndarray]:
-    """Closed-form best certificates of a car's guessed footprint against each obstacle."""
-    s, blocks = own.settings, {}
-    poses = own.poses(states[s.first_constrained_step:])
-    for n, (G, g) in enumerate(s.obstacles):
-        certificate = PolytopeFootprintCertifier(G, g)(poses, own.size)
-        blocks[f"L_o{n}"], blocks[f"Lo{n}_"] = certificate.lam_ij.T, certificate.lam_ji.T
-        if s.collision == "soft":
-            blocks[f"A_o{n}"] = np.maximum(0.0, s.d_min - certificate.value)[None, :]
-    return blocks
-
-
-def footprint_local_guess(
-    own: FootprintAgent, states: np.ndarray, neighbours: Sequence[FootprintAgent], copies: Sequence[np.ndarray],
-) -> dict[str, np.ndarray]:
-    """The primal start of a local problem: the agent's state guess (N+1, n), its copies (rows, N)
-    and every certificate from the guessed poses (closed-form best certificates; the point form's
-    seeds between point agents)."""
-    states = np.asarray(states, float)
-    point = agent_guess_blocks("", states, own.obstacle_settings, seed_duals=not own.oriented)
-    if own.oriented:
-        point.update(_car_obstacle_blocks(own, states))
-    s = own.settings
-    for slot, (other, copy) in enumerate(zip(neighbours, copies, strict=True)):
-        first, copy = pair_first_step(own, other), np.asarray(copy, float)
-        point[f"C{slot}"] = copy
-        own_pose = own.poses(states[first:])
-        other_pose = np.zeros_like(own_pose)
-        other_pose[:, : copy.shape[0]] = copy[:, first - 1:].T
-        if not (own.oriented or other.oriented):
-            point.update(pair_seed(f"p{slot}", own_pose[:, :2] - other_pose[:, :2], own.body + other.body, s))
-            continue
-        certificate = rectangle_pair_certificates(own_pose, own.size, other_pose, other.size)
-        point[f"Li{slot}"], point[f"Lj{slot}"] = certificate.lam_ij.T, certificate.lam_ji.T
-        if s.collision == "soft":
-            point[f"Ap{slot}"] = np.maximum(0.0, s.d_min - certificate.value)[None, :]
-    return point
-
-
 def plan_violations(swarm: FootprintSwarm, plans: Sequence[np.ndarray]) -> list[tuple[int, int]]:
     """The pairs whose planned footprints (states (N+1, n) per agent) come closer than d_min
     (less :data:`SAFETY_TOLERANCE`) at a constrained step, by the exact rectangle distance."""
@@ -187,26 +151,34 @@ def plan_violations(swarm: FootprintSwarm, plans: Sequence[np.ndarray]) -> list[
 
 @dataclass
 class _AgentState:
-    """One agent's side of a step: its neighbours, problem, last answer and multipliers."""
+    """The coordinator's side of one agent for a step: its neighbours, its last answer (the
+    agent's own copy of it lives in the agent, :class:`~swarmpc.solvers.footprint_agent.FootprintLocalAgent`),
+    its multipliers and what its solves cost."""
 
     neighbours: tuple[int, ...]
-    problem: CompiledNLP
-    solution: NLPSolution | None = None
+    answer: FootprintAnswer | None = None
     own_y: np.ndarray | None = None
     copy_y: dict[int, np.ndarray] = field(default_factory=dict)
-    qp: FootprintLocalQP | None = None
     seconds: float = 0.0
     failures: int = 0
     handovers: int = 0
     """QP calls that failed and were handed to IPOPT (``local: qp``)."""
 
-    def block(self, agent: FootprintAgent) -> np.ndarray:
-        assert self.solution is not None
-        return consensus_block(agent, self.solution.x["X"].T)
+    def block(self) -> np.ndarray:
+        assert self.answer is not None
+        return self.answer.block
 
     def copy(self, j: int) -> np.ndarray:
-        assert self.solution is not None
-        return np.asarray(self.solution.x[f"C{self.neighbours.index(j)}"])
+        assert self.answer is not None
+        return self.answer.copies[self.neighbours.index(j)]
+
+    def count(self, result: FootprintResult) -> None:
+        """Adds what a reply of the agent cost; keeps its answer when it is of the step's problem."""
+        self.seconds += result.solve_time
+        self.failures += result.failures
+        self.handovers += result.handovers
+        if result.own:
+            self.answer = result.answer
 
 
 @dataclass
@@ -222,48 +194,34 @@ class _Step:
     dual: list[float] = field(default_factory=list)
 
 
-class _LocalProblems:
-    """Every agent's local problems, built once per agent and sequence of neighbour kinds and
-    reused: the NLP, and with ``local: qp`` the QP local step."""
-
-    def __init__(self, swarm: FootprintSwarm, options: FootprintADMMOptions) -> None:
-        self.swarm, self.options = swarm, options
-        self._problems: dict[tuple[int, tuple[NeighbourKind, ...]], CompiledNLP] = {}
-        self._qps: dict[tuple[int, tuple[NeighbourKind, ...]], FootprintLocalQP] = {}
-
-    def state(self, i: int, neighbours: tuple[int, ...]) -> _AgentState:
-        """A fresh state of agent i holding copies of ``neighbours`` (in slot order), with its problems."""
-        kinds = tuple(NeighbourKind.of(self.swarm.agents[j]) for j in neighbours)
-        return _AgentState(neighbours, self._problem(i, kinds), qp=self._qp(i, kinds))
-
-    def _problem(self, i: int, kinds: tuple[NeighbourKind, ...]) -> CompiledNLP:
-        if (i, kinds) not in self._problems:
-            self._problems[(i, kinds)] = build_footprint_local(self.swarm.agents[i], kinds,
-                                                               owner_weight=self.options.owner_weight)
-        return self._problems[(i, kinds)]
-
-    def _qp(self, i: int, kinds: tuple[NeighbourKind, ...]) -> FootprintLocalQP | None:
-        """Agent i's QP local step for neighbours of these kinds (``local: qp``), else None."""
-        if self.options.local != "qp":
-            return None
-        if (i, kinds) not in self._qps:
-            self._qps[(i, kinds)] = FootprintLocalQP(self.swarm.agents[i], kinds, self.options.qp,
-                                                     self.options.owner_weight)
-        return self._qps[(i, kinds)]
-
-
 class FootprintADMMSolver:
     """Consensus ADMM over the local problems of a swarm with cars (module docstring).
 
-    A local problem is built once per agent and sequence of neighbour kinds and reused; an
-    agent's solve starts from its previous answer (shifted by one step at a new MPC step) while
-    its neighbours are the same, and from the guess otherwise.
+    Each agent's local solves run in a :class:`~swarmpc.solvers.footprint_agent.FootprintLocalAgent`
+    hosted by ``executor``; an agent's solve starts from its previous answer (shifted by one step at
+    a new MPC step) while its neighbours are the same, and from the guess otherwise.
+
+    Parameters
+    ----------
+    swarm : FootprintSwarm
+        The agents, each with its own settings and footprint.
+    options : FootprintADMMOptions
+        ADMM's parameters.
+    executor : Executor or None
+        Where the agents' local solves run. An executor given is the caller's: :meth:`close`
+        leaves it open. None: the solver's own serial executor, which :meth:`close` closes.
     """
 
-    def __init__(self, swarm: FootprintSwarm, options: FootprintADMMOptions = FootprintADMMOptions()) -> None:
+    def __init__(
+        self, swarm: FootprintSwarm, options: FootprintADMMOptions = FootprintADMMOptions(),
+        executor: Executor | None = None,
+    ) -> None:
         self.swarm = swarm
         self.options = options
-        self._locals = _LocalProblems(swarm, options)
+        self._owns_executor = executor is None
+        self.executor: Executor = SerialExecutor() if executor is None else executor
+        self.executor.start(FootprintAgentFactory(swarm, options.local, options.qp, options.owner_weight),
+                            range(swarm.num_agents))
         self._agents: list[_AgentState | None] = [None] * swarm.num_agents
         self._z: list[np.ndarray] | None = None
         """The last step's consensus, to start the next step's from (shifted)."""
@@ -271,6 +229,11 @@ class FootprintADMMSolver:
         """The last step's goals (:meth:`_restarts`)."""
         self._pairs: list[tuple[int, int]] = []
         """The current step's coupled pairs."""
+
+    def close(self) -> None:
+        """Close the executor the solver made for itself (never one it was given)."""
+        if self._owns_executor:
+            self.executor.close()
 
     def _order(self, i: int, pairs: list[tuple[int, int]], every: bool = False) -> tuple[int, ...]:
         """Agent i's neighbours whose copies it holds (``every``: all of them, as in a repair), cars
@@ -283,9 +246,10 @@ class FootprintADMMSolver:
 
     def _start_agents(self, pairs: list[tuple[int, int]], restart: frozenset[int] = frozenset()) -> None:
         """Every agent's state for a new step: the previous answer shifted when the neighbours
-        are unchanged, and with ``carry_multipliers`` the multipliers of every stable block
-        shifted (the others reset). Agents in ``restart`` start afresh, from the guess, as if their
-        neighbours had changed (:meth:`_restarts`).
+        are unchanged (the agents shift their own, :class:`FootprintStart`), and with
+        ``carry_multipliers`` the multipliers of every stable block shifted (the others reset).
+        Agents in ``restart`` start afresh, from the guess, as if their neighbours had changed
+        (:meth:`_restarts`).
 
         A block is stable when its agent has the neighbours it had: its holders are then the
         same, and all of them carry their multipliers of it, so these keep summing to zero and
@@ -295,11 +259,11 @@ class FootprintADMMSolver:
         order = [self._order(i, pairs) for i in range(self.swarm.num_agents)]
         stable = [previous is not None and previous.neighbours == order[i] and i not in restart
                   for i, previous in enumerate(self._agents)]
+        results = self.executor.solve([
+            FootprintStart(i, neighbours, stable[i] and previous is not None and previous.answer is not None)
+            for i, (neighbours, previous) in enumerate(zip(order, self._agents, strict=True))])
         for i, neighbours in enumerate(order):
-            previous = self._agents[i]
-            state = self._locals.state(i, neighbours)
-            if previous is not None and stable[i] and previous.solution is not None:
-                state.solution = _shifted(previous.problem, previous.solution)
+            previous, state = self._agents[i], _AgentState(neighbours, results[i].answer)
             if previous is not None and self.options.carry_multipliers:
                 if stable[i] and previous.own_y is not None:
                     state.own_y = _shift(previous.own_y)
@@ -317,71 +281,13 @@ class FootprintADMMSolver:
             params[f"S{slot}"] = slot_size(agents[i], agents[j])
         return params
 
-    def _solve(
-        self, i: int, step: _Step, guess: np.ndarray, fixed: dict[str, np.ndarray] | None = None,
-        state: _AgentState | None = None,
-    ) -> bool:
-        """Agent i's local solve (in ``state``, default its own), warm from its last answer; when
-        that fails (or there is none), cold from its last plan (or ``guess``) with certificates
-        seeded afresh. Keeps the answer when one succeeds; True on success."""
-        state = self._agents[i] if state is None else state
-        assert state is not None
-        agents = self.swarm.agents
-        params = self._params(i, step, state)
-        if fixed:  # a repair: the copies are pinned, and the own block is drawn to the agent's own plan
-            own = consensus_block(agents[i], guess)
-            params.update({"Z": own, "Y": np.zeros_like(own)})
-        previous = state.solution
-        neighbours = [agents[j] for j in state.neighbours]
-        copies = [fixed[f"C{slot}"] if fixed else step.z[j] for slot, j in enumerate(state.neighbours)]
-        if state.qp is not None:
-            if self._solve_qp(state, params, guess, copies, fixed):
-                return True
-            previous = None  # hand the call to IPOPT, cold: a QP answer has no IPOPT multipliers
-        starts: list[tuple[dict[str, np.ndarray], np.ndarray | None, np.ndarray | None]] = []
-        if previous is not None and previous.lam_x.size:
-            starts.append((previous.x, previous.lam_x, previous.lam_g))
-        plan = guess if previous is None or fixed else np.asarray(previous.x["X"]).T
-        starts.append((footprint_local_guess(agents[i], plan, neighbours, copies), None, None))
-        for point, lam_x, lam_g in starts:
-            solution = state.problem.solve(params, point, lam_x, lam_g, fixed)
-            state.seconds += solution.solve_time
-            if solution.success:
-                state.solution = solution
-                return True
-            state.failures += 1
-        return False
-
-    def _solve_qp(
-        self, state: _AgentState, params: dict[str, np.ndarray], guess: np.ndarray, copies: list[np.ndarray],
-        fixed: dict[str, np.ndarray] | None,
-    ) -> bool:
-        """The QP local step, from the agent's last answer (its plan, inputs and copies) unless
-        this is a repair (from ``guess``, the agent's plan, with the copies pinned); keeps the
-        answer on success, and counts a failure as a hand-over to IPOPT."""
-        assert state.qp is not None
-        previous = state.solution
-        if previous is not None and not fixed:
-            plan, inputs = np.asarray(previous.x["X"]).T, np.asarray(previous.x["U"]).T
-            copies = [np.asarray(previous.x[f"C{slot}"]) for slot in range(len(copies))]
-        else:
-            plan, inputs = np.asarray(guess, float), None
-        solution = state.qp.solve(params, plan, inputs, copies, pinned=bool(fixed))
-        state.seconds += solution.solve_time
-        if solution.success:
-            state.solution = solution
-            return True
-        state.failures += 1
-        state.handovers += 1
-        return False
-
     def _consensus(self, step: _Step) -> tuple[float, float]:
         """The z and multiplier updates from every agent's last answer; (primal, dual) residuals."""
         agents, rho = self._agents, step.rho
         holders: list[list[tuple[np.ndarray, np.ndarray | None, int, int]]] = [[] for _ in agents]
         for i, state in enumerate(agents):
-            assert state is not None and state.solution is not None
-            holders[i].append((state.block(self.swarm.agents[i]), state.own_y, i, -1))
+            assert state is not None and state.answer is not None
+            holders[i].append((state.block(), state.own_y, i, -1))
             for j in state.neighbours:
                 holders[j].append((state.copy(j), state.copy_y.get(j), i, j))
         primal = dual = 0.0
@@ -402,17 +308,23 @@ class FootprintADMMSolver:
         return primal, dual
 
     def _iterate(self, step: _Step, guesses: Sequence[np.ndarray]) -> int:
-        """ADMM iterations until the residuals are below ``tol``; the iteration count."""
-        options = self.options
+        """ADMM iterations until the residuals are below ``tol``; the iteration count. Every agent
+        solves its local problem of an iteration (one batch of the executor) before the consensus
+        update; an agent left without any answer ends the iterations (:class:`_NoAnswer`)."""
+        options, agents = self.options, self._agents
         for iteration in range(1, options.max_iter + 1):
-            slowest = 0.0
-            for i in range(self.swarm.num_agents):
-                state = self._agents[i]
+            requests = []
+            for i, state in enumerate(agents):
                 assert state is not None
-                before = state.seconds
-                if not self._solve(i, step, guesses[i]) and state.solution is None:
-                    raise _NoAnswer(i)
-                slowest = max(slowest, state.seconds - before)
+                requests.append(FootprintSolve(i, state.neighbours, self._params(i, step, state),
+                                               np.asarray(guesses[i], float)))
+            results = self.executor.solve(requests)
+            for state, result in zip(agents, results, strict=True):
+                state.count(result)  # type: ignore[union-attr]
+            for result in results:
+                if result.answer is None:
+                    raise _NoAnswer(result.agent)
+            slowest = max(result.solve_time for result in results)
             started = time.perf_counter()
             primal, dual = self._consensus(step)
             step.primal.append(primal)
@@ -445,24 +357,27 @@ class FootprintADMMSolver:
     ) -> None:
         """Agent i's plan solved again against every neighbour's plan (copies pinned), or braking.
         With ``pair_copies`` "later" the agent may hold no copy of some neighbours: the repair
-        is solved in a problem with all of them, which its own state then keeps no answer of."""
+        is solved in a problem with all of them, of which the agent keeps no answer (and whose
+        multipliers start at zero). The repairs of a pass run one after the other: each pins the
+        plans the ones before it left."""
         own = self._agents[i]
         assert own is not None
         agents = self.swarm.agents
         every = self._order(i, self._pairs, every=True)
-        state = own if every == own.neighbours else self._locals.state(i, every)
-        fixed = {f"C{slot}": consensus_block(agents[j], plans[j]) for slot, j in enumerate(state.neighbours)}
-        before, failures = state.seconds, state.failures
-        if self._solve(i, step, plans[i], fixed, state):
-            plans[i], inputs[i] = state.solution.x["X"].T, state.solution.x["U"].T  # type: ignore[union-attr]
+        view = own if every == own.neighbours else _AgentState(every)
+        params = self._params(i, step, view)
+        own_block = consensus_block(agents[i], plans[i])  # the own block is drawn to the agent's own plan
+        params.update({"Z": own_block, "Y": np.zeros_like(own_block)})
+        fixed = {f"C{slot}": consensus_block(agents[j], plans[j]) for slot, j in enumerate(every)}
+        [result] = self.executor.solve([FootprintSolve(i, every, params, np.asarray(plans[i], float), fixed)])
+        own.count(result)
+        if result.success:
+            assert result.answer is not None
+            plans[i], inputs[i] = result.answer.states, result.answer.inputs
         else:
             plans[i], inputs[i] = braking_plan(step.states[i], agents[i].settings)
             fallback[i] = True
-        step.critical += state.seconds - before
-        if state is not own:
-            own.seconds += state.seconds - before
-            own.failures += state.failures - failures
-            own.handovers += state.handovers
+        step.critical += result.solve_time
 
     def plan(
         self, states: Sequence[np.ndarray], goals: Sequence[np.ndarray], guesses: Sequence[np.ndarray],
@@ -485,11 +400,11 @@ class FootprintADMMSolver:
         plans, inputs = [], []
         for i, state in enumerate(self._agents):
             assert state is not None
-            if state.solution is None:
+            if state.answer is None:
                 plan, controls = braking_plan(states[i], swarm.agents[i].settings)
                 fallback[i] = True
             else:
-                plan, controls = state.solution.x["X"].T, state.solution.x["U"].T
+                plan, controls = state.answer.states, state.answer.inputs
             plans.append(np.asarray(plan))
             inputs.append(np.asarray(controls))
         self._z = step.z
@@ -506,9 +421,9 @@ class FootprintADMMSolver:
             return frozenset()
         out = set()
         for i, (state, agent) in enumerate(zip(self._agents, self.swarm.agents, strict=True)):
-            if state is None or state.solution is None:
+            if state is None or state.answer is None:
                 continue
-            positions = agent.settings.model.position(np.asarray(state.solution.x["X"]).T)
+            positions = agent.settings.model.position(np.asarray(state.answer.states))
             moved = np.max(np.abs(np.asarray(goals[i], float)[:2] - self._goals[i][:2]))
             if np.max(np.abs(positions - positions[0])) < STILL and moved > 0:
                 out.add(i)
@@ -522,16 +437,11 @@ class FootprintADMMSolver:
             state = self._agents[i]
             if self._z is not None and state is not None and state.own_y is not None:
                 out.append(_shift(self._z[i]))
+            elif state is not None and state.answer is not None:
+                out.append(state.answer.block)
             else:
-                out.append(consensus_block(agent, self._guess_of(i, guesses[i])))
+                out.append(consensus_block(agent, np.asarray(guesses[i], float)))
         return out
-
-    def _guess_of(self, i: int, guess: np.ndarray) -> np.ndarray:
-        """Agent i's state guess: its shifted previous answer when it has one, else ``guess``."""
-        state = self._agents[i]
-        if state is not None and state.solution is not None:
-            return np.asarray(state.solution.x["X"]).T
-        return np.asarray(guess, float)
 
     def _outcome(
         self, step: _Step, plans: list[np.ndarray], inputs: list[np.ndarray], fallback: np.ndarray,
@@ -539,8 +449,8 @@ class FootprintADMMSolver:
     ) -> PlanStep:
         agents = self.swarm.agents
         cost = sum(_stage_cost(plans[i], inputs[i], step.goals[i], agent) for i, agent in enumerate(agents))
-        slacks = [float(np.max(value)) for state in self._agents if state is not None and state.solution is not None
-                  for name, value in state.solution.x.items() if name.startswith("A") and value.size]
+        slacks = [state.answer.max_slack for state in self._agents
+                  if state is not None and state.answer is not None and state.answer.max_slack is not None]
         failures = sum(state.failures for state in self._agents if state is not None)
         handovers = sum(state.handovers for state in self._agents if state is not None)
         return PlanStep(
@@ -566,21 +476,6 @@ def _shift(block: np.ndarray) -> np.ndarray:
     return np.concatenate([block[:, 1:], block[:, -1:]], axis=1)
 
 
-def _shifted(problem: CompiledNLP, solution: NLPSolution) -> NLPSolution:
-    """A previous answer moved one step on (primal and multipliers), to warm-start the next step."""
-    layout_x, layout_g = problem.x_layout, problem.g_layout
-    x = shift_blocks(solution.x)
-    if not solution.lam_x.size:  # a QP answer: its blocks only
-        return NLPSolution(x=x, x_vec=solution.x_vec, lam_x=solution.lam_x, lam_g=solution.lam_g, cost=solution.cost,
-                           success=True, status=solution.status, iterations=0, solve_time=0.0)
-    return NLPSolution(
-        x=x, x_vec=layout_x.pack(x),
-        lam_x=layout_x.pack(shift_blocks(layout_x.unpack(solution.lam_x))),
-        lam_g=layout_g.pack(shift_blocks(layout_g.unpack(solution.lam_g))),
-        cost=solution.cost, success=True, status=solution.status, iterations=0, solve_time=0.0,
-    )
-
-
 def _stage_cost(states: np.ndarray, inputs: np.ndarray, goal: np.ndarray, agent: FootprintAgent) -> float:
     """The quadratic cost of one agent's plan (:func:`~swarmpc.formulation.ocp.quadratic_cost`)."""
     s = agent.settings
@@ -596,6 +491,10 @@ class FootprintADMMMPCSolver:
 
     def __init__(self, solver: FootprintADMMSolver) -> None:
         self.solver = solver
+
+    def close(self) -> None:
+        """Close the executor the solver made for itself (:meth:`FootprintADMMSolver.close`)."""
+        self.solver.close()
 
     def plan(self, states: np.ndarray, goals: np.ndarray, guess: np.ndarray | None) -> PlanStep:
         agents = self.solver.swarm.agents

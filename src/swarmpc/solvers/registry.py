@@ -126,10 +126,11 @@ def footprint_admm_solver(
     options: SolverConfig, agents: tuple[OCPSettings, ...], bodies: np.ndarray, executor: Executor | None = None
 ) -> FootprintADMMMPCSolver:
     """Consensus ADMM over a swarm of cars and point agents, agreeing on footprint poses
-    (:class:`~swarmpc.solvers.footprint_admm.FootprintADMMSolver`). Its local solves run in the
-    calling process: ``executor`` is not used."""
+    (:class:`~swarmpc.solvers.footprint_admm.FootprintADMMSolver`). Its local solves run on
+    ``executor``; an executor given stays its creator's, without one the solver makes and closes its
+    own serial one."""
     return FootprintADMMMPCSolver(FootprintADMMSolver(_footprint_swarm(agents, bodies),
-                                                      FootprintADMMOptions.from_options(options)))
+                                                      FootprintADMMOptions.from_options(options), executor))
 
 
 SOLVERS = (SolverRegistry().register("admm", admm_solver).register("centralized", centralized_solver)
