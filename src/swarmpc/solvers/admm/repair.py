@@ -175,7 +175,8 @@ class Repair:
         and each level, asked in one batch, gives the answers of asking the order one agent after
         another; a batch costs the step's critical path only its slowest re-plan. ``budget``: a
         level is asked only if it allows (:meth:`BatchBudget.allows`); the pass returns at the first
-        it refuses, with no re-plans around failures (the selection pass that follows covers them)."""
+        it refuses, and the re-plans around failures are asked while it allows (the selection pass
+        that follows covers what is left)."""
         repaired = list(results)
         neighbours = graph.neighbours
         if agents is None:
@@ -196,28 +197,35 @@ class Repair:
                 if not repaired[i].success and i not in retried:
                     retried.add(i)
                     schedule.append(i)
+        failures = [k for k in range(len(results)) if not repaired[k].success]
+        self._replan_around(failures, graph, z, rho, repaired, budget)
         if budget is not None:
             budget.close()
-        failures = [k for k in range(len(results)) if not repaired[k].success]
-        self._replan_around(failures, graph, z, rho, repaired)
         return repaired
 
     def _replan_around(
         self, failures: list[int], graph: CouplingGraph, z: np.ndarray, rho: float, repaired: list[LocalResult],
+        budget: BatchBudget | None = None,
     ) -> None:
         """Each neighbour of a ``failures`` agent whose plan comes within max(Delta_ij) + d_min of
         that agent's fallback re-plans against every current plan (``repaired``, updated in
         place), failure by failure, neighbour by neighbour. Consecutive re-plans of agents that
         hold no copy of each other are asked in one batch: a re-plan sees only its neighbours'
-        plans, so the answers are those of asking them one after another."""
+        plans, so the answers are those of asking them one after another. ``budget``: a batch is
+        asked only if it allows, and none after the first it refuses."""
         d_min, largest = self.safety.settings.d_min, self.safety.largest_delta
         neighbours = graph.neighbours
         batch: list[int] = []
 
+        refused = False
+
         def flush() -> None:
-            for i, answer in zip(batch, self.replan(batch, graph, z, rho, repaired, [True] * len(batch)),
-                                 strict=True):
-                repaired[i] = answer
+            nonlocal refused
+            refused = refused or (budget is not None and not budget.allows())
+            if not refused:
+                for i, answer in zip(batch, self.replan(batch, graph, z, rho, repaired, [True] * len(batch)),
+                                     strict=True):
+                    repaired[i] = answer
             batch.clear()
 
         for failed in failures:
