@@ -257,3 +257,36 @@ def test_a_loose_tolerance_still_stops_only_on_plans_kept_apart(name):
 
     assert closest(check=False) < 0.0  # inside each other's delta box
     assert closest(check=True) >= 0.5 * s.d_min - 1e-6
+
+
+def test_the_dual_tolerance_is_its_own_and_defaults_to_the_primal_one():
+    from swarmpc.solvers.admm.consensus import consensus_met
+
+    paper, loose = ADMMConfig(tol=1e-3), ADMMConfig(tol=1e-3, dual_tol=1e-2)
+    assert paper.dual_tol is None
+    assert not consensus_met(5e-4, 5e-3, paper.rho, paper)  # the dual residual holds the paper's stop
+    assert consensus_met(5e-4, 5e-3, loose.rho, loose)
+    assert consensus_met(5e-4, 5e-4, paper.rho, paper)
+    assert not consensus_met(2e-3, 1e-6, loose.rho, loose)  # never without the primal
+    assert consensus_met(5e-4, 4e-2, 4 * loose.rho, loose)  # compared at the step's starting rho
+    with pytest.raises(ValueError, match="dual_tol"):
+        ADMMConfig(dual_tol=0.0)
+
+
+def test_a_looser_dual_tolerance_stops_a_crossing_step_sooner_on_plans_kept_apart():
+    """paper-2d about to cross: the step stops in fewer iterations when z may still move by tol per
+    iteration, and the coupled agents' plans keep d_min / 2, recomputed here."""
+    scn, states = approach_state("paper-2d", 22)
+    s = OCPSettings.from_scenario(scn)
+    goals = scn.goal_states()
+    guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
+
+    def step(config: ADMMConfig):
+        return ADMMSolver(s, 4, scn.delta_vector, config).plan(states, goals, guess)
+
+    paper, loose = step(ADMMConfig()), step(ADMMConfig(dual_tol=ADMMConfig().rho * ADMMConfig().tol))
+    assert loose.admm_iterations < paper.admm_iterations
+    positions = loose.states[:, s.first_constrained_step:, : s.dim]
+    closest = min(point_box_distance(p - q, scn.delta_vector)
+                  for i in range(4) for j in range(i + 1, 4) for p, q in zip(positions[i], positions[j], strict=True))
+    assert closest >= 0.5 * s.d_min - 1e-6

@@ -130,6 +130,7 @@ solver:
     closing_time: 0.25
     deadline_repair: select
     repair_order: colour
+    dual_tol: 0.02
 """
 
 
@@ -141,6 +142,7 @@ def test_every_admm_key_in_a_file_reaches_the_solver(tmp_path):
     assert (config.carry_multipliers, config.warm_start, config.repair) == ("never", False, False)
     assert (config.owner_weight, config.dynamic_copies, config.closing_time) == (2.5, True, 0.25)
     assert (config.repair_rounds, config.deadline_repair, config.repair_order) == (5, "select", "colour")
+    assert config.dual_tol == 0.02
     car_only = {"pair_copies"}  # the ADMM of a swarm with cars: test_pair_copies_in_a_file_reach_the_car_solver
     assert set(ADMMOptions.model_fields) - car_only == set(yaml.safe_load(ADMM_SECTION)["solver"]["admm"])
 

@@ -539,6 +539,12 @@ class ADMMOptions(_Frozen):
         description="Repair passes at most per step: after a pass, candidate pairs whose repaired plans conflict "
         "are coupled and their agents re-plan again.",
     )
+    dual_tol: float | None = Field(
+        default=None, gt=0,
+        description="Tolerance of ADMM's dual residual (the penalty-weighted RMS motion of the consensus in the "
+        "last iteration, at the step's starting rho); null: `solver.tol`, as in the paper. `rho * tol` stops a step "
+        "once the consensus moves less than `solver.tol` per iteration.",
+    )
     owner_weight: float = Field(
         default=5.0, gt=0,
         description="Weight of an agent's own block in the consensus: its penalty is rho times this, and the "

@@ -30,6 +30,13 @@ class ADMMConfig:
     rho: float = 10.0
     max_iter: int = 100
     tol: float = 1e-3
+    dual_tol: float | None = None
+    """Tolerance of the dual residual (the RMS of rho_b (z - z_previous) over the consensus blocks,
+    compared at the step's starting rho); None: ``tol``, as in the paper. The dual residual measures
+    how far z moved in the last iteration, weighted by the penalties: ``rho * tol`` lets a step
+    stop once the consensus moves less than ``tol`` per iteration (own blocks: ``tol`` /
+    ``owner_weight``) where ``tol`` asks for a tenth of that at rho = 10
+    (evidence: docs/lab/admm.md#dual-tolerance)."""
     adaptive_rho: bool = False
     dynamic_copies: bool = False
     owner_weight: float = 5.0
@@ -134,7 +141,8 @@ class ADMMConfig:
             margin, closing_time = options.coupling_margin, 0.0
         admm = options.admm
         return cls(
-            rho=options.rho, max_iter=options.max_iter, tol=options.tol, adaptive_rho=options.adaptive_rho,
+            rho=options.rho, max_iter=options.max_iter, tol=options.tol, dual_tol=admm.dual_tol,
+            adaptive_rho=options.adaptive_rho,
             seed_duals=options.seed_duals, coupling_margin=margin, reuse_tol=options.reuse_tol,
             relaxation=options.relaxation, plane_margin=options.plane_margin, deadline=options.deadline,
             local=options.local,
@@ -153,6 +161,8 @@ def _first_problem(cfg: ADMMConfig) -> str | None:
     for name, value in positive.items():
         if not value > 0:
             return f"{name}: must be > 0, got {value!r}"
+    if cfg.dual_tol is not None and not cfg.dual_tol > 0:
+        return f"dual_tol: must be > 0 or None, got {cfg.dual_tol!r}"
     non_negative: dict[str, float | None] = {"coupling_margin": cfg.coupling_margin, "plane_margin": cfg.plane_margin,
                                              "closing_time": cfg.closing_time, "reuse_tol": cfg.reuse_tol}
     for name, optional in non_negative.items():

@@ -121,10 +121,12 @@ def dual_residual(change: np.ndarray, weights: np.ndarray, neighbours: Sequence[
 
 
 def consensus_met(primal: float, dual: float, rho: float, config: ADMMConfig) -> bool:
-    """The paper's stop: both residuals within ``tol``. A raised rho scales the dual residual, not
-    the motion of z it measures: it is compared at the step's starting penalty, or raising rho
-    would itself block convergence."""
-    return primal <= config.tol and dual <= config.tol * rho / config.rho
+    """The paper's stop: the primal residual within ``tol`` and the dual residual within
+    ``dual_tol`` (``tol`` when None, the paper's). A raised rho scales the dual residual, not the
+    motion of z it measures: it is compared at the step's starting penalty, or raising rho would
+    itself block convergence."""
+    dual_tol = config.tol if config.dual_tol is None else config.dual_tol
+    return primal <= config.tol and dual <= dual_tol * rho / config.rho
 
 
 @dataclass
