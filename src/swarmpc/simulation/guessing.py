@@ -1,5 +1,6 @@
-"""Per-step initial-guess strategies for the closed loop (straight, shifted, RRT, auto), and the
-cars' SE(2) routes behind their RRT guesses."""
+"""Per-step initial-guess strategies for the closed loop (straight, shifted, RRT, auto), the
+waypoints that steer agents round static obstacles, and the cars' SE(2) routes behind their RRT
+guesses and waypoints."""
 
 from __future__ import annotations
 
