@@ -267,13 +267,15 @@ def parking(delta: float = 0.3, seed: int = 0) -> dict[str, Any]:
     leave eastwards.
 
     The straight line out of a bay runs into the divider beside it, so every car starts from its
-    SE(2) path (``initial_guess: rrt``). The steering weight is a tenth of the other car
+    SE(2) path (``initial_guess: rrt``) and is steered along it while its straight way is blocked
+    (:meth:`~swarmpc.simulation.guessing.CarRoutes.waypoint`). The steering weight is a tenth of the other car
     built-ins' (a car squares up in a bay only by steering hard over a short distance), and the
     keep-right rule is off (one-way traffic; a turned goal points into the dividers). Flown by
     ADMM (``solver.method: admm``), of each coupled pair only the later car holds a copy of the
     other (``solver.admm.pair_copies: later``), the earlier car yielding only through the
-    consensus. By ADMM not every car parks, with either setting: the two cars entering the western
-    bays end up in each other's way (docs/lab/cars.md#parking-admm-probe)."""
+    consensus. By ADMM every car parks, with either setting, at the centralised run's cost; without
+    the steering along the paths the two cars entering the western bays ended up in each other's
+    way (docs/lab/cars.md#parking-car-waypoints, #parking-admm-probe)."""
     bays = [-1.2, -0.4, 0.4, 1.2]
     dividers = [{"box": {"center": [x, 0.35], "half_size": [0.05, 0.35]}} for x in (-1.6, -0.8, 0.0, 0.8, 1.6)]
     agents = [
