@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -96,3 +97,23 @@ def cli_in_process(*args: str) -> tuple[object, str]:
     finally:
         sys.argv = argv
     return code, stderr.getvalue()
+
+
+def one_car_scenario(obstacles: list[dict[str, Any]], horizon: int, start: list[float] | None = None,
+                     goal: list[float] | None = None, **changes: Any) -> Any:
+    """One car, by default from [-2, 0] heading +x to [2, 0] heading +x, among ``obstacles``, with
+    RRT guesses, accel and speed limits of 1 and a horizon of ``horizon`` steps of 0.1 s;
+    ``changes``: top-level keys to replace."""
+    from swarmpc.config import scenario_from_dict
+
+    data: dict[str, Any] = {
+        "name": "one-car", "dim": 2, "dt": 0.1, "horizon": horizon, "seed": 3,
+        "weights": {"Q": 1.0, "R": 1.0, "Qf": 20.0},
+        "solver": {"method": "centralized", "initial_guess": "rrt"},
+        "limits": {"accel": 1.0, "speed": 1.0},
+        "workspace": {"lower": [-3.0, -2.5], "upper": [3.0, 2.5]},
+        "obstacles": obstacles,
+        "agents": [{"model": "car", "start": start or [-2.0, 0.0, 0.0], "goal": goal or [2.0, 0.0, 0.0]}],
+    }
+    data.update(changes)
+    return scenario_from_dict(data)

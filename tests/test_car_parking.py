@@ -17,8 +17,8 @@ import pytest
 
 pytest.importorskip("ompl")
 
-from conftest import cli_in_process, load_folder  # noqa: E402
-from swarmpc.config import Scenario, load_scenario, scenario_from_dict  # noqa: E402
+from conftest import cli_in_process, load_folder, one_car_scenario  # noqa: E402
+from swarmpc.config import Scenario, load_scenario  # noqa: E402
 from swarmpc.formulation.footprint_ocp import FootprintAgent  # noqa: E402
 from swarmpc.formulation.ocp import OCPSettings  # noqa: E402
 from swarmpc.model.footprint import (  # noqa: E402
@@ -47,17 +47,7 @@ PEN = [  # three walls and the workspace's right edge close the goal [2, 0, 0] i
 def _one_car(obstacles: list[dict[str, Any]], **changes: Any) -> Scenario:
     """One car from [-2, 0] heading +x to [2, 0] heading +x, RRT guesses, a horizon long enough for
     the guess to pass the wall."""
-    data: dict[str, Any] = {
-        "name": "car-guess", "dim": 2, "dt": 0.1, "horizon": 100, "seed": 3,
-        "weights": {"Q": 1.0, "R": 1.0, "Qf": 20.0},
-        "solver": {"method": "centralized", "initial_guess": "rrt"},
-        "limits": {"accel": 1.0, "speed": 1.0},
-        "workspace": {"lower": [-3.0, -2.5], "upper": [3.0, 2.5]},
-        "obstacles": obstacles,
-        "agents": [{"model": "car", "start": [-2.0, 0.0, 0.0], "goal": [2.0, 0.0, 0.0]}],
-    }
-    data.update(changes)
-    return scenario_from_dict(data)
+    return one_car_scenario(obstacles, horizon=100, name="car-guess", **changes)
 
 
 def _guess(scn: Scenario, strategy: str | None = None) -> tuple[GuessProvider, np.ndarray]:

@@ -11,7 +11,8 @@ import pytest
 
 pytest.importorskip("ompl")
 
-from swarmpc.config import Scenario, scenario_from_dict  # noqa: E402
+from conftest import one_car_scenario  # noqa: E402
+from swarmpc.config import Scenario  # noqa: E402
 from swarmpc.formulation.ocp import OCPSettings  # noqa: E402
 from swarmpc.model.car import KinematicCar  # noqa: E402
 from swarmpc.simulation.guessing import CAR_OFF_PATH, CarRoutes, GuessProvider  # noqa: E402
@@ -28,15 +29,7 @@ def _one_car(obstacles: list[dict[str, Any]], start: list[float] | None = None,
              goal: list[float] | None = None) -> Scenario:
     """One car, by default from [-2, 0] heading +x to [2, 0] heading +x, RRT guesses, a 2 s horizon
     at 1 m/s (a lookahead of 1.5 * 0.8 * 2 = 2.4 m)."""
-    return scenario_from_dict({
-        "name": "car-waypoints", "dim": 2, "dt": 0.1, "horizon": 20, "seed": 3,
-        "weights": {"Q": 1.0, "R": 1.0, "Qf": 20.0},
-        "solver": {"method": "centralized", "initial_guess": "rrt"},
-        "limits": {"accel": 1.0, "speed": 1.0},
-        "workspace": {"lower": [-3.0, -2.5], "upper": [3.0, 2.5]},
-        "obstacles": obstacles,
-        "agents": [{"model": "car", "start": start or [-2.0, 0.0, 0.0], "goal": goal or [2.0, 0.0, 0.0]}],
-    })
+    return one_car_scenario(obstacles, horizon=20, start=start, goal=goal, name="car-waypoints")
 
 
 def _car(scn: Scenario) -> KinematicCar:
