@@ -40,6 +40,12 @@ afresh from where it is. Closer, the stored path is reused, so that the waypoint
 jump from step to step."""
 
 
+def waypoint_lookahead(settings: OCPSettings) -> float:
+    """How far ahead along its path [m] an agent steered round obstacles is given its waypoint:
+    1.5 times what it covers in one horizon at its nominal speed."""
+    return 1.5 * nominal_speed(settings) * settings.horizon * settings.dt
+
+
 class CarRoutes:
     """The cars' SE(2) paths (:func:`~swarmpc.solvers.car_guess.car_path`), planned once per goal
     and followed from where the car is at every later call.
@@ -256,7 +262,7 @@ class GuessProvider:
         uses_rrt = self.strategy == "rrt" or (self.strategy == "auto" and scn.obstacles)
         if uses_rrt:
             self._rrt_of = self._body_planners(scn)
-        self.lookahead = 1.5 * self.speed * settings.horizon * settings.dt
+        self.lookahead = waypoint_lookahead(settings)
         self._route: np.ndarray | None = None  # the goals given to the last goals() call
         self._cars: list[FootprintAgent | None] = [None] * scn.num_agents  # per agent: a car's own settings
         self._car_routes: CarRoutes | None = None  # the cars' SE(2) paths, with the RRT guesses only
@@ -355,8 +361,7 @@ class GuessProvider:
         routes = self._car_routes
         if routes is None or not isinstance(model, KinematicCar) or not routes.blocked(model, state, goal):
             return goal
-        lookahead = 1.5 * nominal_speed(s) * s.horizon * s.dt
-        waypoint = routes.waypoint(agent, model, state, goal, lookahead)
+        waypoint = routes.waypoint(agent, model, state, goal, waypoint_lookahead(s))
         return goal if waypoint is None else waypoint
 
     def guesses(self, states: np.ndarray, goals: np.ndarray, previous: PlanStep | None) -> np.ndarray:
