@@ -21,6 +21,7 @@ from swarmpc.simulation.controller import make_solver
 from swarmpc.simulation.guessing import GuessProvider
 from swarmpc.solvers.admm import reach_candidates, reach_radius
 from swarmpc.solvers.centralized import CentralizedSolver
+from swarmpc.solvers.qp_local import speed_polytope
 
 
 def random_weights(rng: np.random.Generator, dim: int) -> dict[str, list]:
@@ -92,17 +93,20 @@ FAR_AGENTS = [  # (start [p, v], goal p): 40 m apart, far beyond any coupling re
 LIMITS = {"accel": 1.0, "speed": 0.8}
 
 
-def far_scenario(agents: list, limits: dict | None, method: str = "admm") -> dict:
-    return {"name": "far", "dim": 2, "limits": limits or {}, "solver": {"method": method},
+def far_scenario(agents: list, limits: dict | None, method: str = "admm", local: str = "ipopt") -> dict:
+    return {"name": "far", "dim": 2, "limits": limits or {}, "solver": {"method": method, "local": local},
             "weights": {"Q": 1.0, "R": 0.1},  # stiff: with limits, the 8 m move saturates both
             "agents": [{"start": start, "goal": goal} for start, goal in agents]}
 
 
+@pytest.mark.parametrize("local", ["ipopt", "qp"])
 @pytest.mark.parametrize("limits", [None, LIMITS], ids=["unlimited", "limited"])
 @pytest.mark.parametrize("count", [2, 3, 4])
-def test_far_apart_agents_admm_plans_are_their_lone_plans(count, limits):
+def test_far_apart_agents_admm_plans_are_their_lone_plans(count, limits, local):
+    """Against the lone agent's NLP; the QP step with a speed limit (an inner polytope of the
+    NLP's ball) against the lone agent's own QP step."""
     agents = FAR_AGENTS[:count]
-    scn = scenario_from_dict(far_scenario(agents, limits))
+    scn = scenario_from_dict(far_scenario(agents, limits, local=local))
     s = OCPSettings.from_scenario(scn)
     states, goals = scn.start_states(), scn.goal_states()
     guess = GuessProvider(scn, s, "straight").guesses(states, goals, None)
@@ -113,7 +117,8 @@ def test_far_apart_agents_admm_plans_are_their_lone_plans(count, limits):
     assert not step.copies.any()  # nobody holds a copy of anybody
 
     for i, agent in enumerate(agents):
-        alone = scenario_from_dict(far_scenario([agent], limits, "centralized"))
+        reference = "admm" if local == "qp" and limits is not None else "centralized"
+        alone = scenario_from_dict(far_scenario([agent], limits, reference, local))
         lone = make_solver(alone, OCPSettings.from_scenario(alone)).plan(states[i:i + 1], goals[i:i + 1],
                                                                           guess[i:i + 1])
         assert lone.failures == 0
@@ -121,7 +126,8 @@ def test_far_apart_agents_admm_plans_are_their_lone_plans(count, limits):
         assert np.max(np.abs(step.states[i] - lone.states[0])) <= 1e-6
     if limits is not None and count >= 2:  # the limits bind, so the comparison covers them
         assert np.max(np.abs(step.inputs)) >= LIMITS["accel"] - 1e-6
-        assert np.max(np.linalg.norm(step.states[:, 1:, 2:], axis=2)) >= LIMITS["speed"] - 1e-4
+        ratio = 1.0 if local == "ipopt" else speed_polytope(2)[1]  # the QP's inner polygon of the ball
+        assert np.max(np.linalg.norm(step.states[:, 1:, 2:], axis=2)) >= ratio * LIMITS["speed"] - 1e-4
 
 
 # ------------------------------------------------------------------ the reach bound

@@ -79,7 +79,7 @@ def test_aggregate_rates_and_cost_gap():
     assert row["agent_ms_median"] == pytest.approx(4.0) and row["iterations_max"] == 3
     assert row["copies_mean"] is None  # none recorded
     table = markdown_table(rows)
-    assert "| random | 4 | ipopt | 2 | 50% | 50% |" in table and "+10.0%" in table
+    assert "| random | 4 | qp | 2 | 50% | 50% |" in table and "+10.0%" in table
     with_copies = [CaseOutcome(**{**outcome("random", 8, seed, "admm", 1.0).__dict__, "copies_mean": held,
                                   "planes_mean": planes})
                    for seed, held, planes in ((0, 1.0, 0.5), (1, 2.0, 1.0))]
@@ -185,7 +185,7 @@ def test_bench_command_writes_its_table(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == str(out / "bench.md")
     table = (out / "bench.md").read_text()
-    assert "| circle | 2 | ipopt | 1 |" in table
+    assert "| circle | 2 | qp | 1 |" in table  # the point families' own local step
     data = json.loads((out / "bench.json").read_text())
     assert {r["case"]["method"] for r in data["runs"]} == {"admm", "centralized"}
     assert all(r["steps"] == 5 and r["collisions"] == 0 for r in data["runs"])
@@ -231,7 +231,7 @@ def test_reports_of_split_studies_merge_into_the_table_of_all_their_runs(tmp_pat
 
 def test_merging_the_same_case_twice_or_an_old_report_is_refused(tmp_path):
     write_report(tmp_path / "a", [outcome("random", 8, 0, "admm", 1.0)], "m", 1.0)
-    with pytest.raises(ValueError, match="random M=8 seed=0 admm ipopt is in both"):
+    with pytest.raises(ValueError, match="random M=8 seed=0 admm qp is in both"):
         merge_reports([tmp_path / "a", tmp_path / "a"], tmp_path / "all")
     old = tmp_path / "old.json"
     old.write_text(json.dumps({"runs": [{"case": {"family": "random", "agents": 8, "seed": 1}, "step_ms": None}]}))
@@ -282,7 +282,7 @@ def test_each_admm_case_runs_once_per_local_step_one_after_the_other():
         (0, "admm", "qp"), (0, "admm", "ipopt"), (0, "centralized", "ipopt"),
         (1, "admm", "qp"), (1, "admm", "ipopt"), (1, "centralized", "ipopt")]  # the reference runs once
     assert [c.scenario().solver.local for c in cases[:2]] == ["qp", "ipopt"]
-    assert [c.label for c in cases[:3]] == ["random-M4-seed0-admm-qp", "random-M4-seed0-admm",
+    assert [c.label for c in cases[:3]] == ["random-M4-seed0-admm", "random-M4-seed0-admm-ipopt",
                                             "random-M4-seed0-centralized"]
     assert plan_cases(["random"], [4], 1, "serial", None, 60.0, 0) == [BenchCase("random", 4, 0, budget_s=60.0)]
     for wrong in (("blob",), (), ("qp", "qp")):
@@ -304,7 +304,7 @@ def test_run_bench_with_two_local_steps_writes_a_row_for_each(tmp_path):
     gaps = {(r["agents"], r["local"]): r["cost_gap_pct_median"] for r in report["rows"]}
     assert gaps[4, "qp"] == pytest.approx(10.0) and gaps[4, "ipopt"] == pytest.approx(0.0)  # one reference
     assert sum(r["case"]["method"] == "centralized" for r in report["runs"]) == 2
-    assert set(report["growth"]) == {"random", "random/qp"}
+    assert set(report["growth"]) == {"random", "random/ipopt"}
     table = markdown.read_text()
     assert "| random | 4 | ipopt | 2 |" in table and "| random | 4 | qp | 2 |" in table
     assert "| local fallbacks |" in table
@@ -481,7 +481,7 @@ def test_point_swarm_tables_have_no_footprint_column_and_car_rows_sort_last():
     assert "footprint" not in markdown_table(aggregate([point]))
     cars = [car_outcome(BenchCase("crossing", 4, 0, method)) for method in ("admm", "centralized")]
     rows = aggregate([cars[0], point, cars[1]])
-    assert [(r["family"], r["local"]) for r in rows] == [("circle", "ipopt"), ("crossing", "ipopt")]
+    assert [(r["family"], r["local"]) for r in rows] == [("circle", "qp"), ("crossing", "ipopt")]  # cars: IPOPT
     assert rows[1]["min_footprint_distance_m"] == pytest.approx(0.3) and rows[1]["min_separation_ratio"] is None
     assert rows[1]["cost_gap_pct_median"] == pytest.approx(0.0)  # ADMM against the centralised run, as for points
     lines = markdown_table(rows).splitlines()
@@ -503,3 +503,12 @@ def test_a_case_its_validation_refuses_fails_with_its_reason_and_the_others_run(
     with pytest.raises(ValueError, match="^set: "):  # a bad setting is still refused before anything runs
         run_bench(tmp_path / "bad", families=["crossing"], sizes=[4], seeds=1, jobs=1, settings={"weights.R": -1})
     assert not (tmp_path / "bad").exists()
+
+
+def test_each_family_runs_its_own_local_step_unless_asked():
+    assert BenchCase("random", 4, 0).local == "qp" and BenchCase("crossing", 4, 0).local == "ipopt"  # cars: NLP
+    assert BenchCase("crossing", 4, 0).scenario().solver.local == "ipopt"
+    assert BenchCase("crossing", 4, 0, local="qp").scenario().solver.local == "qp"  # asked for: kept
+    assert BenchCase("random", 4, 0, "centralized", local="qp").local == "ipopt"  # the reference's one NLP
+    cases = plan_cases(["random", "crossing"], [4], 1, "serial", None, 60.0, 0)
+    assert [(c.family, c.local) for c in cases] == [("random", "qp"), ("crossing", "ipopt")]

@@ -384,7 +384,9 @@ def test_the_key_and_the_option_select_the_local_step(tmp_path):
     assert isinstance(agent.nlp, QPLocalSolverLadder) and isinstance(agent.rescue, QPLocalSolverLadder)
     with pytest.raises(ValueError, match="free copies"):
         LocalAgentFactory(solver.settings, 3, dynamic_copies=True, local="qp")
-    assert ADMMConfig().local == "ipopt" and builtin_scenario("paper-2d").solver.local == "ipopt"
+    assert ADMMConfig().local == "ipopt"  # the solver object's own default: the reference NLP
+    assert builtin_scenario("paper-2d").solver.local == "qp"  # a scenario's: the QP step for point agents ...
+    assert builtin_scenario("intersection").solver.local == "ipopt"  # ... and the NLP with cars
     done = run_cli("run", "paper-2d", "--local", "qp", "--max-steps", "2", "--out", str(tmp_path / "run"), "-q")
     assert done.returncode == 0, done.stderr
     assert "local: qp" in (tmp_path / "run" / "scenario.yaml").read_text()

@@ -27,6 +27,7 @@ from swarmpc.config import (
     SolverConfig,
     load_scenario,
     scenario_from_dict,
+    scenario_to_yaml,
 )
 from swarmpc.docgen import schema_fields
 from swarmpc.formulation.ocp import IPOPT_OPTIONS, LOCAL_IPOPT_OPTIONS, OCPSettings, ipopt_options
@@ -109,7 +110,8 @@ def test_the_simulation_layer_imports_no_concrete_solver():
 
 # ------------------------------------------------------------------------------ solver.admm
 def test_the_admm_section_defaults_are_the_admm_config_defaults():
-    assert ADMMConfig.from_options(SolverConfig(), "soft") == ADMMConfig()
+    # every default but the local step's: a scenario's is the QP step, the solver object's the reference NLP
+    assert ADMMConfig.from_options(SolverConfig(), "soft") == ADMMConfig(local="qp")
     hard = ADMMConfig.from_options(SolverConfig(), "hard")
     assert (hard.coupling_margin, hard.closing_time) == (0.2, 0.1)
 
@@ -142,9 +144,25 @@ def test_every_admm_key_in_a_file_reaches_the_solver(tmp_path):
     assert (config.carry_multipliers, config.warm_start, config.repair) == ("never", False, False)
     assert (config.owner_weight, config.dynamic_copies, config.closing_time) == (2.5, True, 0.25)
     assert (config.repair_rounds, config.deadline_repair, config.repair_order) == (5, "select", "colour")
-    assert config.dual_tol == 0.02
+    assert config.dual_tol == 0.02 and config.local == "ipopt"  # dynamic copies: the NLP, unless asked
     car_only = {"pair_copies"}  # the ADMM of a swarm with cars: test_pair_copies_in_a_file_reach_the_car_solver
     assert set(ADMMOptions.model_fields) - car_only == set(yaml.safe_load(ADMM_SECTION)["solver"]["admm"])
+
+
+def test_the_local_step_left_out_is_the_qp_step_for_point_agents_and_the_nlp_with_cars(tmp_path):
+    assert scenario().solver.local == "qp" == SolverConfig().local
+    car = {"start": [0.0, 0.0, 0.0], "goal": [2.0, 0.0, 0.0], "model": "car"}
+    mixed = {**BASE, "agents": [*AGENTS[:1], car], "weights": {"Qf": 10.0}}
+    assert scenario_from_dict(mixed).solver.local == "ipopt"  # a car's QP step is slower than its NLP
+    assert scenario_from_dict({**mixed, "solver": {"local": "qp"}}).solver.local == "qp"  # asked for: kept
+    assert scenario_from_dict({**mixed, "solver": SolverConfig()}).solver.local == "ipopt"
+    assert scenario_from_dict({**mixed, "solver": SolverConfig(local="qp")}).solver.local == "qp"
+    assert scenario(solver={"admm": {"dynamic_copies": True}}).solver.local == "ipopt"  # the step that takes them
+    with pytest.raises(ScenarioError, match="dynamic_copies"):
+        scenario(solver={"local": "qp", "admm": {"dynamic_copies": True}})
+    written = from_yaml(tmp_path, "")  # a written scenario records the local step it resolved to
+    assert "local: qp" in scenario_to_yaml(written)
+    assert scenario_from_dict(yaml.safe_load(scenario_to_yaml(scenario_from_dict(mixed)))).solver.local == "ipopt"
 
 
 def test_pair_copies_in_a_file_reach_the_car_solver():
@@ -186,8 +204,9 @@ def test_the_ipopt_section_reaches_the_settings_and_the_options(tmp_path):
 @pytest.mark.parametrize("method", ["centralized", "admm"])
 def test_an_ipopt_iteration_cap_of_one_makes_the_solves_fail(method):
     """The cap reaches IPOPT itself: one iteration cannot solve a swap from a straight guess."""
-    capped = scenario(solver={"method": method, "initial_guess": "straight", "ipopt": {"max_iter": 1}})
-    free = scenario(solver={"method": method, "initial_guess": "straight"})
+    capped = scenario(solver={"method": method, "local": "ipopt", "initial_guess": "straight",
+                              "ipopt": {"max_iter": 1}})
+    free = scenario(solver={"method": method, "local": "ipopt", "initial_guess": "straight"})
     with Controller(capped) as mpc:
         mpc.step(capped.start_states())
         assert mpc.last_record.failures > 0
@@ -360,7 +379,7 @@ def test_a_ladder_type_handed_to_the_agents_factory_solves_every_local_problem()
             calls.append(kwargs["copies"])
             return super().solve(*args, **kwargs)
 
-    scn = builtin_scenario("paper-2d").with_updates(**{"stop.max_steps": 3})
+    scn = builtin_scenario("paper-2d").with_updates(**{"stop.max_steps": 3, "solver.local": "ipopt"})
     settings = OCPSettings.from_scenario(scn)
     config = ADMMConfig.from_options(scn.solver, settings.collision)
     bodies = planner_bodies(scn)

@@ -1,4 +1,4 @@
-"""Closed-loop behaviour pinned: four whole runs must give the trajectories recorded in
+"""Closed-loop behaviour pinned: four whole runs, each with either local step, must give the trajectories recorded in
 tests/data/pinned-trajectories.npz (made by tests/data/make_pinned.py). A refactor that changes a
 single state of these runs fails here (the inputs follow from the states through the dynamics); a
 change meant to alter behaviour regenerates the file."""
@@ -16,8 +16,11 @@ from swarmpc.simulation.loop import simulate
 pytestmark = pytest.mark.loop  # four whole runs
 
 PINNED = Path(__file__).parent / "data" / "pinned-trajectories.npz"
-CASES = {"paper-2d": ("paper-2d", {}), "paper-3d": ("paper-3d", {}), "wall-door": ("wall-door", {}),
-         "random-16": ("random", {"agents": 16, "dim": 3, "seed": 0})}
+RUNS = {"paper-2d": ("paper-2d", {}), "paper-3d": ("paper-3d", {}), "wall-door": ("wall-door", {}),
+        "random-16": ("random", {"agents": 16, "dim": 3, "seed": 0})}
+CASES = {**{key: (name, params, {"solver.local": "ipopt"}) for key, (name, params) in RUNS.items()},
+         **{f"{key}-qp": (name, params, {}) for key, (name, params) in RUNS.items()}}
+"""Each run with the IPOPT local step (the reference) and with the default QP local step."""
 TOLERANCE = 1e-9
 """Bit for bit on the machine that recorded them; a hair of slack for another CPU's rounding in
 the linear algebra underneath IPOPT."""
@@ -28,8 +31,8 @@ def test_trajectories_are_unchanged(case):
     """The run matches one of the case's stored trajectories: the recorded one, or a variant
     recorded on a CPU whose kernels round differently (``make_pinned.py --add-variant``), since
     the closed loop feeds a last-bit difference back until the runs part."""
-    name, params = CASES[case]
-    result = simulate(builtin_scenario(name, **params))
+    name, params, updates = CASES[case]
+    result = simulate(builtin_scenario(name, **params).with_updates(**updates))
     with np.load(PINNED) as pinned:
         stored = [pinned[key] for key in pinned.files if key.split("~")[0] == f"{case}/states"]
     assert stored and any(s.shape == result.states.shape for s in stored), "the run took a different number of steps"

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from swarmpc.batch import Finished, QuietStart, Task, run_batch
-from swarmpc.config import Scenario, SolverConfig, scenario_from_dict
+from swarmpc.config import Scenario, SolverConfig, default_local, scenario_from_dict
 from swarmpc.model.geometry import body_separation_ratio, count_body_collisions
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.loop import StopFlag, simulate
@@ -78,8 +78,11 @@ column (below it: the solvers' tolerances)."""
 """The local step (``local``) of a report row of centralised runs only: a size at which no ADMM
 run was measured (:func:`aggregate`)."""
 DEFAULT_LOCAL: str = SolverConfig.model_fields["local"].default
-"""The local step of the benchmark's scenarios (a scenario's ``solver.local`` unless it sets one),
-also that of a ``bench.json`` run written before cases recorded theirs."""
+"""The local step of the benchmark's ADMM cases (a scenario's ``solver.local`` unless it sets one)."""
+REPORTED_BEFORE_LOCAL = "ipopt"
+"""The local step of a ``bench.json`` run written before cases recorded theirs (then the only one)."""
+CENTRAL_LOCAL = "ipopt"
+"""The ``local`` of a centralised case: its one NLP is solved by IPOPT, whatever the ADMM default."""
 
 
 @dataclass(frozen=True)
@@ -96,12 +99,19 @@ class BenchCase:
     max_steps: int | None = None
     plane_margin: float | None = None
     """``solver.plane_margin`` of an ADMM case (None: the scenario's own)."""
-    local: str = DEFAULT_LOCAL
-    """``solver.local`` of an ADMM case: the agents' local step, ``ipopt`` or ``qp`` (a centralised
-    case has none and keeps the default)."""
+    local: str = ""
+    """``solver.local`` of an ADMM case: the agents' local step, ``ipopt`` or ``qp``; empty: the
+    family's own (:func:`family_local`). A centralised case has none: :data:`CENTRAL_LOCAL`
+    whatever is given."""
     settings: tuple[tuple[str, Any], ...] = ()
     """Scenario keys (dotted, ``weights.Q``) and values set on the case's scenario before the
     benchmark's own (``--set``): a tuning compared on the same families."""
+
+    def __post_init__(self) -> None:
+        if self.method == "centralized":  # one reference per seed, whichever local steps ADMM ran
+            object.__setattr__(self, "local", CENTRAL_LOCAL)
+        elif not self.local:
+            object.__setattr__(self, "local", family_local(self.family))
 
     def scenario(self) -> Scenario:
         """The case's scenario (built-in generators; see the module docstring)."""
@@ -124,8 +134,8 @@ class BenchCase:
     @property
     def label(self) -> str:
         """A name for the case's run folder: ``random-M64-seed1-admm``, with the local step appended
-        when it is not the default one (``random-M64-seed1-admm-qp``)."""
-        local = f"-{self.local}" if self.method == "admm" and self.local != DEFAULT_LOCAL else ""
+        when it is not the family's own (``random-M64-seed1-admm-ipopt``)."""
+        local = f"-{self.local}" if self.method == "admm" and self.local != family_local(self.family) else ""
         return f"{self.family}-M{self.agents}-seed{self.seed}-{self.method}{local}"
 
     @property
@@ -284,18 +294,20 @@ def _mean(values: Sequence[Any]) -> float | None:
 def plan_cases(
     families: Iterable[str], sizes: Iterable[int], seeds: int, executor: str, workers: int | None,
     budget_s: float, central_max_agents: int, max_steps: int | None = None, first_seed: int = 0,
-    plane_margin: float | None = None, locals_: Sequence[str] = (DEFAULT_LOCAL,),
+    plane_margin: float | None = None, locals_: Sequence[str] | None = None,
     settings: tuple[tuple[str, Any], ...] = (), methods: Sequence[str] = METHODS,
 ) -> list[BenchCase]:
     """Every case of the benchmark; the circle, sphere and crossing families are deterministic
     (one seed). The random and spread families run seeds ``first_seed`` … ``first_seed + seeds - 1``,
     so a long study can be split over machines or separate invocations without repeating a seed.
     Each ADMM case runs once per local step of ``locals_``, one right after the other (so that they
-    meet the machine in the same state); the centralised reference runs once. ``settings`` are set
+    meet the machine in the same state); the centralised reference runs once. ``locals_`` None:
+    each family's own (:func:`family_local`). ``settings`` are set
     on every case's scenario. ``methods`` leaves out ADMM or the centralised runs (a study of one
     method). ValueError (one line) for a size a family does not take (:data:`SIZE_MULTIPLES`)."""
     families, sizes = tuple(families), tuple(sizes)
-    _check_locals(locals_)
+    if locals_ is not None:
+        _check_locals(locals_)
     _check_sizes(families, sizes)
     unknown = sorted(set(methods) - set(METHODS))
     if unknown or not methods:
@@ -307,7 +319,8 @@ def plan_cases(
             for seed in (range(first_seed, first_seed + seeds) if family in SEEDED_FAMILIES else range(1)):
                 if "admm" in methods:
                     cases.extend(BenchCase(family, m, seed, "admm", executor, workers, budget_s, max_steps,
-                                           plane_margin, local, settings) for local in locals_)
+                                           plane_margin, local, settings)
+                                 for local in locals_ or ("",))
                 if m <= central_max_agents and "centralized" in methods:
                     cases.append(BenchCase(family, m, seed, "centralized", "serial", None, budget_s, max_steps,
                                            settings=settings))
@@ -321,6 +334,12 @@ def _check_sizes(families: Iterable[str], sizes: Iterable[int]) -> None:
         wrong = [m for m in sizes if multiple and m % multiple]
         if wrong:
             raise ValueError(f"sizes: family {family} takes multiples of {multiple}, got {wrong[0]}")
+
+
+def family_local(family: str) -> str:
+    """The local step of a family's ADMM cases when none is asked for: that its scenarios take
+    (:func:`swarmpc.config.default_local`: ipopt for the car families, else qp)."""
+    return default_local(has_cars=family in CAR_FAMILIES)
 
 
 def _check_locals(locals_: Sequence[str]) -> None:
@@ -409,22 +428,22 @@ def growth_exponents(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]
 
     k <= 1 for the step time is "no worse than linear in M"; the per-agent k says how the work of
     one agent grows with the swarm (0 when neighbourhoods do not grow). Rows of another local step
-    than the default one are fitted apart, under ``family/local`` (``circle/qp``), and each fit
+    than the family's own are fitted apart, under ``family/local`` (``circle/ipopt``), and each fit
     names its ``local``.
     """
     out: dict[str, dict[str, Any]] = {}
-    for family, local in dict.fromkeys((r["family"], r.get("local", DEFAULT_LOCAL)) for r in rows):
+    for family, local in dict.fromkeys((r["family"], r.get("local") or family_local(r["family"])) for r in rows):
         exponents: dict[str, Any] = {}
         for key, name in (("step_ms_median", "step"), ("agent_ms_median", "agent")):
             points = [(r["agents"], r[key]) for r in rows
-                      if (r["family"], r.get("local", DEFAULT_LOCAL)) == (family, local)
+                      if (r["family"], r.get("local") or family_local(r["family"])) == (family, local)
                       and r[key] is not None and r[key] > 0]
             if len({m for m, _ in points}) >= 2:
                 log_m, log_t = np.log([m for m, _ in points]), np.log([t for _, t in points])
                 exponents[name] = float(np.polyfit(log_m, log_t, 1)[0])
                 exponents["sizes"] = sorted(m for m, _ in points)
         if exponents:
-            out[family if local == DEFAULT_LOCAL else f"{family}/{local}"] = {**exponents, "local": local}
+            out[family if local == family_local(family) else f"{family}/{local}"] = {**exponents, "local": local}
     return out
 
 
@@ -503,7 +522,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         lines.append("| " + " | ".join([
-            r["family"], str(r["agents"]), str(r.get("local", DEFAULT_LOCAL)), str(r["runs"]),
+            r["family"], str(r["agents"]), str(r.get("local") or family_local(r["family"])), str(r["runs"]),
             _cell(None if r["all_reached_rate"] is None else 100 * r["all_reached_rate"], "{:.0f}%"),
             _cell(None if r["collision_free_rate"] is None else 100 * r["collision_free_rate"], "{:.0f}%"),
             str(r["timed_out"]), _cell(r["min_separation_ratio"], "{:.2f}"),
@@ -540,7 +559,7 @@ def run_bench(
     save_runs: bool = False,
     plane_margin: float | None = None,
     case_runner: Callable[[BenchCase, Path | None], CaseOutcome] = run_case,
-    locals_: Sequence[str] = (DEFAULT_LOCAL,),
+    locals_: Sequence[str] | None = None,
     settings: Mapping[str, Any] | None = None,
     methods: Sequence[str] = METHODS,
 ) -> tuple[Path, Path]:
@@ -555,7 +574,8 @@ def run_bench(
     failures follows the last report. ``save_runs`` keeps every run's folder under ``out/runs``;
     ``plane_margin`` sets ``solver.plane_margin`` of every ADMM case. ``locals_`` are the ADMM
     agents' local steps (``solver.local``) to compare: every ADMM case runs once with each, the
-    runs of a case one after the other, and the table has a row per local step. ``case_runner``
+    runs of a case one after the other, and the table has a row per local step (None: each
+    family's own, :func:`family_local`). ``case_runner``
     runs one case (a module-level function when ``jobs`` > 1, so that worker processes can load it).
     ``settings`` (dotted scenario keys to values, ``{"weights.Q": 1.0}``) are set on every case's
     scenario; ValueError (``set: ...``) before anything runs when a case's scenario rejects them.
@@ -569,7 +589,8 @@ def run_bench(
     seeds = seeds or (1 if quick else 5)
     cases = plan_cases(families, sizes, seeds, executor, workers, budget_s,
                        min(central_max_agents, 4) if quick else central_max_agents, max_steps, first_seed,
-                       plane_margin, tuple(locals_), tuple((settings or {}).items()), tuple(methods))
+                       plane_margin, None if locals_ is None else tuple(locals_), tuple((settings or {}).items()),
+                       tuple(methods))
     _check_settings(cases)
     jobs = jobs or (1 if executor != "serial" else available_cores())
     machine = f"{os.cpu_count()} cores, {jobs} case(s) at a time, executor {executor}"
@@ -754,6 +775,7 @@ def _outcome_from_json(run: Any, where: str) -> CaseOutcome:
     case = _checked_fields(run["case"], _CASE_CHECKS, _required_fields(BenchCase), f"{where}.case")
     values["unreached"] = tuple(values.get("unreached", ()))
     case["settings"] = tuple((key, value) for key, value in case.get("settings", ()))
+    case.setdefault("local", REPORTED_BEFORE_LOCAL)
     return CaseOutcome(case=BenchCase(**case), **values)
 
 

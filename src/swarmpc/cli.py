@@ -125,7 +125,7 @@ def run(
         help="keep near, not engaged pairs apart by separating planes instead of copies [m]")] = None,
     local: Annotated[LocalSolver | None, typer.Option(
         help="ADMM agents' local step: ipopt (the NLP) or qp (convex QPs, IPOPT as fallback) "
-        "(default: the scenario's, ipopt)")] = None,
+        "(default: the scenario's; qp unless it has cars)")] = None,
     deadline: Annotated[float | None, typer.Option(
         help="ADMM critical-path budget per MPC step, in seconds: stop iterating before an overrun and end "
         "the step through the repair pass (default: the scenario's solver.deadline, none)")] = None,
@@ -623,7 +623,7 @@ def bench(
         min=0.0, help="solver.plane_margin of every ADMM case [m] [the scenarios' own: off]")] = None,
     local: Annotated[str | None, typer.Option(
         help="comma-separated ADMM local steps (qp, ipopt): every ADMM case runs once with each, side by side "
-        "in the table [the scenarios' own: ipopt]")] = None,
+        "in the table [the scenarios' own: qp, ipopt for the car families]")] = None,
     save_runs: Annotated[bool, typer.Option("--save-runs", help="keep every run's folder under OUT/runs")] = False,
     merge: Annotated[list[Path] | None, typer.Option(
         help="run nothing: one report from these earlier bench.json files or folders (repeatable)")] = None,
@@ -633,7 +633,7 @@ def bench(
 ) -> None:
     """The scaling benchmark: swarms of growing size; writes OUT/bench.md and OUT/bench.json
     (rewritten after every finished run, so a long study interrupted keeps what it measured)."""
-    from swarmpc.bench import DEFAULT_LOCAL, FAMILIES, LOCAL_STEPS, merge_reports, run_bench
+    from swarmpc.bench import FAMILIES, LOCAL_STEPS, merge_reports, run_bench
 
     if merge:
         try:
@@ -654,8 +654,9 @@ def bench(
     unknown = sorted(set(family_list) - set(FAMILIES))
     if unknown or not family_list:
         fail(f"--families: unknown {', '.join(unknown) or 'none given'} (choose from {', '.join(FAMILIES)})")
-    local_list = [v.strip() for v in local.split(",") if v.strip()] if local is not None else [DEFAULT_LOCAL]
-    if not local_list or set(local_list) - set(LOCAL_STEPS) or len(set(local_list)) != len(local_list):
+    local_list = [v.strip() for v in local.split(",") if v.strip()] if local is not None else None
+    if local_list is not None and (not local_list or set(local_list) - set(LOCAL_STEPS)
+                                   or len(set(local_list)) != len(local_list)):
         fail(f"--local: expected comma-separated local steps, each once, from {', '.join(LOCAL_STEPS)}; "
              f"got {local!r}")
     overrides = _bench_settings(settings or [])

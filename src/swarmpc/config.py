@@ -677,6 +677,25 @@ REMOVED_SOLVER_KEYS: typing.Mapping[str, str] = types.MappingProxyType({
 """``solver`` keys that were removed, with why and where their measurement is kept."""
 
 
+def default_local(has_cars: bool) -> Literal["qp", "ipopt"]:
+    """``solver.local`` of a scenario that leaves it out: ``qp`` for a swarm of point agents (as
+    good plans as the NLP's, several times faster), ``ipopt`` when some agent is a car (a car's
+    QP step, a sequential convex programme, is slower than its NLP: docs/lab/cars.md)."""
+    return "ipopt" if has_cars else "qp"
+
+
+def _names_a_car(agents: Any) -> bool:
+    """Whether raw ``agents`` data (dicts or :class:`Agent` objects, before validation) hold a car."""
+    if not isinstance(agents, list):
+        return False
+    for agent in agents:
+        model = agent.get("model") if isinstance(agent, dict) else getattr(agent, "model", None)
+        kind = model.get("type") if isinstance(model, dict) else getattr(model, "type", model)
+        if kind == "car":
+            return True
+    return False
+
+
 class SolverConfig(_Frozen):
     """How each MPC step is solved."""
 
@@ -723,10 +742,13 @@ class SolverConfig(_Frozen):
         default=True, description="seed the OBCA certificates from the guess's geometry (else 0)"
     )
     local: Literal["qp", "ipopt"] = Field(
-        default="ipopt",
-        description="ADMM agents' local step: ipopt (the OBCA NLP by IPOPT, the reference) or qp (a short "
-        "sequence of convex QPs (OSQP; PIQP in the repair passes, `solver.qp`) with the OBCA certificates held "
-        "fixed, whose plans are collision-free as they stand; a call the QP path fails is solved by IPOPT instead)",
+        default=default_local(has_cars=False),
+        description="ADMM agents' local step: qp (a short sequence of convex QPs (OSQP; PIQP in the repair "
+        "passes, `solver.qp`) with the OBCA certificates held fixed, whose plans are collision-free as they stand; "
+        "a call the QP path fails is solved by IPOPT instead; the speed limit is an inner polytope of the speed "
+        "ball, `solver.qp.speed_facets`) or ipopt (the OBCA NLP by IPOPT: the paper's local step and the "
+        "reference, several times slower). Left out: qp, or ipopt when some agent is a car (a car's QP step is "
+        "slower than its NLP) or with `admm.dynamic_copies`",
     )
     deadline: float | None = Field(
         default=None, gt=0,
@@ -759,6 +781,17 @@ class SolverConfig(_Frozen):
             for key, why in REMOVED_SOLVER_KEYS.items():
                 if key in data:
                     raise ValueError(f"{key}: removed ({why})")
+        return data
+
+    @model_validator(mode="before")
+    @classmethod
+    def _local_step_of_dynamic_copies(cls, data: Any) -> Any:
+        """``local`` left out with ``admm.dynamic_copies``: ipopt, the local step that takes them."""
+        if isinstance(data, dict) and "local" not in data:
+            admm = data.get("admm")
+            dynamic = admm.get("dynamic_copies") if isinstance(admm, dict) else getattr(admm, "dynamic_copies", False)
+            if dynamic is True:
+                return {**data, "local": "ipopt"}
         return data
 
     @model_validator(mode="after")
@@ -1174,6 +1207,19 @@ class Scenario(_Frozen):
         if len(value) > MAX_OBSTACLES:
             raise ValueError(f"at most {MAX_OBSTACLES} obstacles, got {len(value)}")
         return value
+
+    @model_validator(mode="before")
+    @classmethod
+    def _local_step_of_the_agents(cls, data: Any) -> Any:
+        """``solver.local`` left out: :func:`default_local` of the agents (qp, or ipopt with cars)."""
+        if not isinstance(data, dict) or not _names_a_car(data.get("agents")):
+            return data
+        solver = data.get("solver")
+        if solver is None or (isinstance(solver, dict) and "local" not in solver):
+            return {**data, "solver": {**(solver or {}), "local": default_local(has_cars=True)}}
+        if isinstance(solver, SolverConfig) and "local" not in solver.model_fields_set:
+            return {**data, "solver": solver.model_copy(update={"local": default_local(has_cars=True)})}
+        return data
 
     @model_validator(mode="after")
     def _consistent(self) -> Scenario:

@@ -17,8 +17,11 @@ import numpy as np
 from swarmpc.scenarios import builtin_scenario
 from swarmpc.simulation.loop import simulate
 
-CASES = {"paper-2d": ("paper-2d", {}), "paper-3d": ("paper-3d", {}), "wall-door": ("wall-door", {}),
-         "random-16": ("random", {"agents": 16, "dim": 3, "seed": 0})}
+RUNS = {"paper-2d": ("paper-2d", {}), "paper-3d": ("paper-3d", {}), "wall-door": ("wall-door", {}),
+        "random-16": ("random", {"agents": 16, "dim": 3, "seed": 0})}
+CASES = {**{key: (name, params, {"solver.local": "ipopt"}) for key, (name, params) in RUNS.items()},
+         **{f"{key}-qp": (name, params, {}) for key, (name, params) in RUNS.items()}}
+"""Each run with the IPOPT local step (the reference) and with the default QP local step."""
 TOLERANCE = 1e-9
 
 
@@ -38,8 +41,8 @@ if __name__ == "__main__":
     if add:
         with np.load(path) as stored:
             arrays = {name: stored[name] for name in stored.files}
-    for key, (name, params) in CASES.items():
-        states = simulate(builtin_scenario(name, **params)).states
+    for key, (name, params, updates) in CASES.items():
+        states = simulate(builtin_scenario(name, **params).with_updates(**updates)).states
         if not add:
             arrays[f"{key}/states"] = states
         elif not matches(states, variants(arrays, key)):

@@ -18,6 +18,8 @@ PAPER_DELTAS = (0.1, 0.3, 0.5)
 FORMS = ("hard", "soft")
 GUESSES = ("straight", "shifted", "rrt", "auto")
 GUESS_DELTA = 0.3
+PAPER_LOCAL = "ipopt"
+"""The agents' local step of every run: the paper solves each local problem as an NLP by IPOPT."""
 SEED = 0
 RUNS_DIR = "runs"
 MANIFEST = "reproduce.json"
@@ -57,6 +59,7 @@ class RunSpec:
                 "collision": self.collision,
                 "seed": self.seed,
                 "solver.method": self.method,
+                "solver.local": PAPER_LOCAL,
                 "solver.initial_guess": self.guess,
                 "stop.max_steps": self.max_steps,
             }
