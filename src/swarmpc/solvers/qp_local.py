@@ -622,7 +622,8 @@ class OSQPBackend:
             self._core.update_data_mat(P_x=P_data, P_i=None, A_x=A_data, A_i=None)
 
     def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer:
-        self._solver.warm_start(x=x, y=y if y is not None else np.zeros(self._solver.m))
+        start = self._core if self._core is not None else self._solver  # the interface only passes it on
+        start.warm_start(x, y if y is not None else np.zeros(self._solver.m))
         if self._core is None:
             result = self._solver.solve(raise_error=False)
             info, primal, dual = result.info, result.x, result.y

@@ -129,9 +129,12 @@ class ConsensusMultipliers:
         self.own = (self.own if self.own is not None else 0.0) + (
             rho * request.owner_weight * (_relaxed(last.own, alpha, own_before) - request.z_own)
         )
+        sent: dict[int, int] = {}  # neighbour -> its (first) copy in ``last``
+        for slot, j in enumerate(last_neighbours):
+            sent.setdefault(j, slot)
         for slot, j in enumerate(request.neighbours):
-            if j in last_neighbours:
-                previous = _relaxed(last.copies[last_neighbours.index(j)], alpha, copies_before.get(j))
+            if j in sent:
+                previous = _relaxed(last.copies[sent[j]], alpha, copies_before.get(j))
                 self.copies[j] = self.copies.get(j, 0.0) + rho * (previous - request.z_neighbours[slot])
 
     def parameters(self, request: LocalRequest) -> dict[str, np.ndarray]:
