@@ -324,8 +324,8 @@ class Certifier:
         lam = np.empty((n, 2 * d, K))
         if n:  # every copy in one call, each column against its pair's box
             columns = np.repeat(half, K, axis=1) if columns is None else columns
-            direction, _ = box_normals(np.transpose(offsets, (1, 0, 2)).reshape(d, n * K), columns)
-            direction = np.transpose(direction.reshape(d, n, K), (1, 0, 2))
+            direction, _ = box_normals(offsets.transpose(1, 0, 2).reshape(d, n * K), columns)
+            direction = direction.reshape(d, n, K).transpose(1, 0, 2)
             np.maximum(direction, 0.0, out=lam[:, :d])  # lambda_+, then lambda_-
             np.maximum(-direction, 0.0, out=lam[:, d:])
         certs = tuple(certifier(own).lam for certifier in self.obstacles)
@@ -438,13 +438,12 @@ class LocalQPProblem:
         s, lay, first = self.settings, self.layout, self.settings.first_constrained_step
         goal = np.asarray(params["goal"], float)
         rho, weight = float(params["rho"]), float(params["owner_weight"])
-        states = np.empty((s.horizon + 1, s.model.state_dim))
+        q = np.zeros(lay.size)
+        states = q[: (s.horizon + 1) * s.model.state_dim].reshape(s.horizon + 1, s.model.state_dim)  # a view
         states[:-1] = self._goal_weights[0] @ goal
         states[-1] = self._goal_weights[1] @ goal
         consensus = np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)
         states[first:, s.model.position_rows] += consensus.T
-        q = np.zeros(lay.size)
-        q[: states.size] = states.ravel()
         if not self.shape.pinned and self.shape.copies:
             stacked = targets if targets is not None else self.copy_targets(params)
             assert stacked is not None  # there are copies
@@ -971,7 +970,7 @@ def _row_change(old: np.ndarray, new: np.ndarray, near: np.ndarray) -> float:
     their bound (0 when none is)."""
     if not np.any(near):
         return 0.0
-    return max(0.0, float(np.max(np.abs(old - new) * near[:, None, :])))
+    return max(0.0, float((np.abs(old - new) * near[:, None, :]).max()))
 
 
 class SequentialLocalQP:
@@ -990,6 +989,8 @@ class SequentialLocalQP:
         self._input_box = (lower[:, None], upper[:, None])
         """The input box as columns (m, 1) (:meth:`rebuild` clips to it on every call)."""
         self._block_keys = [(f"C{c}", f"L{c}", f"A{c}") for c in range(shape.copies)]
+        self._workspace = (s.lower[:, None], s.upper[:, None]) if s.lower is not None and s.upper is not None else None
+        """The workspace box as columns (d, 1) (:meth:`violation` checks it on every call)."""
         self.proof = SeparationProof(s, self.transition, self.response, options.margin) if (
             shape.pinned and shape.pair_collision == "hard") else None
         """Decides failed repair calls that no solver can answer (:data:`PROVEN_INFEASIBLE`)."""
@@ -1153,7 +1154,7 @@ class SequentialLocalQP:
             if not answer.solved:
                 break
             new, own, offsets = self._certified(answer.x, pinned, pairs)
-            moved = float(np.max(np.abs(answer.x - x))) if x.size else 0.0
+            moved = float(np.abs(answer.x - x).max()) if x.size else 0.0
             x, y = answer.x, answer.y
             converged = moved <= self.options.plan_tol or self._settled(lin, new, own, offsets)
             lin = new
@@ -1242,8 +1243,9 @@ class SequentialLocalQP:
             status = f"unsafe_{violation:.1e}"
         stacked = None if targets is None else (np.ascontiguousarray(copies, float), *targets)
         return NLPSolution(
-            x=blocks, x_vec=np.concatenate([x, self.certify.pack(lin)]), lam_x=np.zeros(0), lam_g=y,
-            cost=stacked_objective(blocks, params, s, stacked), success=violation <= 0.0, status=status,
+            x=blocks, x_vec=np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]]),
+            lam_x=np.zeros(0), lam_g=y, cost=stacked_objective(blocks, params, s, stacked),
+            success=violation <= 0.0, status=status,
             iterations=rounds, solve_time=wall,
         )
 
@@ -1271,16 +1273,16 @@ class SequentialLocalQP:
         s, first = self.settings, self.settings.first_constrained_step
         gaps = [0.0]
         if self.shape.pair_collision == "hard" and lin.pair_value.size:
-            gaps.append(float(np.max(s.d_min - lin.pair_value)))
+            gaps.append(float((s.d_min - lin.pair_value).max()))
         if s.collision == "hard" and lin.obstacle_value.size:
-            gaps.append(float(np.max(s.d_min - lin.obstacle_value)))
+            gaps.append(float((s.d_min - lin.obstacle_value).max()))
         own = X[s.model.position_rows, first:]
         for p in range(self.shape.planes):
             gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
-        if s.lower is not None and s.upper is not None:
-            gaps += [float(np.max(s.lower[:, None] - own)), float(np.max(own - s.upper[:, None]))]
+        if self._workspace is not None:
+            gaps += [float((self._workspace[0] - own).max()), float((own - self._workspace[1]).max())]
         if s.speed is not None:
-            gaps.append(float(np.max(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1)) - s.speed))
+            gaps.append(float(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1).max()) - s.speed)
         return max(gaps)
 
 
@@ -1339,7 +1341,7 @@ class QPLocalLadder:
         if any(key.startswith("C") for key in fixed):
             pinned = self._pinned(fixed, copies)
         caps = {c: float(np.max(fixed[f"A{c}"])) for c in range(copies)
-                if f"A{c}" in fixed and self.pair_collision == "soft"}
+                if f"A{c}" in fixed} if fixed and self.pair_collision == "soft" else {}
         with self._lock:
             shape = LocalShape(copies, planes, pinned is not None, self.pair_collision)
             stepper = self.stepper(shape)
