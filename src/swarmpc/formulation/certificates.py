@@ -58,6 +58,7 @@ __all__ = [
     "Certificates",
     "PolytopeCertifier",
     "box_certificates",
+    "box_normals",
     "certificate_values",
     "pair_rows",
     "polytope_certificates",
@@ -113,6 +114,16 @@ def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> Certificates
         half = half.reshape(-1, 1)  # (d, 1) or (1, 1): broadcast on the columns
         if half.shape[0] not in (1, d):
             raise ValueError(f"box_certificates: half_size must be a scalar or ({d},), got {half.shape[0]} values")
+    direction, value = box_normals(q, half)
+    lam = np.vstack([np.maximum(direction, 0.0), np.maximum(-direction, 0.0)])
+    return _shaped(Certificates(lam, value), single)
+
+
+def box_normals(q: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The unit normals n (d, K) of :func:`box_certificates` (lambda = [max(n, 0); max(-n, 0)])
+    and their values (K,), without its checks: offsets ``q`` (d, K), half-sizes ``half`` (d, K),
+    or (d, 1) / (1, 1) for every column. The local step takes its certificates this way on
+    every round, and lays lambda out itself."""
     excess = np.abs(q) - half
     outside = np.maximum(excess, 0.0)
     gap = np.sqrt(np.einsum("ik,ik->k", outside, outside))
@@ -126,8 +137,7 @@ def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> Certificates
         direction[axis, inner] = np.where(q[axis, inner] >= 0, 1.0, -1.0)
         value = gap.copy()
         value[inner] = excess[axis, inner]
-    lam = np.vstack([np.maximum(direction, 0.0), np.maximum(-direction, 0.0)])
-    return _shaped(Certificates(lam, value), single)
+    return direction, value
 
 
 def certificate_values(points: np.ndarray, G: np.ndarray, g: np.ndarray, lam: np.ndarray) -> np.ndarray:

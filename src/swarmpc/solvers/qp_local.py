@@ -81,7 +81,7 @@ import scipy.sparse as sp
 from scipy.spatial import HalfspaceIntersection
 
 from swarmpc.config import QPOptions
-from swarmpc.formulation.certificates import PolytopeCertifier, box_certificates
+from swarmpc.formulation.certificates import PolytopeCertifier, box_normals
 from swarmpc.formulation.nlp import NLPSolution
 from swarmpc.formulation.ocp import OCPSettings
 
@@ -304,21 +304,32 @@ class Certifier:
         self.g = [np.asarray(g, float) for _, g in s.obstacles]
         self.size = 2 * s.dim + sum(len(g) for g in self.g)
         """Certificate entries per constrained step of one copy's pair rows plus all obstacles."""
+        self._no_obstacle = (np.zeros((0, s.dim, s.num_constrained)), np.zeros((0, s.num_constrained)),
+                             np.zeros((0, s.num_constrained)))
+        """The (empty) obstacle rows of a problem without obstacles, shared by its linearisations."""
 
     def __call__(self, own: np.ndarray, copies: np.ndarray, delta: np.ndarray) -> Linearisation:
         """The best certificates for own positions (d, K) and copies (n, d, K); ``delta``: the
         pairs' Delta_ij, (d, n) one column per copy or (d,) for every copy."""
         d, K = own.shape
-        n = len(copies)
-        half = copy_deltas(delta, n, d)
+        return self.best(own, own[None] - copies, copy_deltas(delta, len(copies), d))
+
+    def best(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray,
+             columns: np.ndarray | None = None) -> Linearisation:
+        """:meth:`__call__` from the offsets own - copies (n, d, K) and the pairs' Delta (d, n);
+        ``columns``: Delta repeated per step (d, n K) when the caller has it (it holds for every
+        round of a call)."""
+        d, K = own.shape
+        n = len(offsets)
+        lam = np.empty((n, 2 * d, K))
         if n:  # every copy in one call, each column against its pair's box
-            offsets = np.transpose(own[None] - copies, (1, 0, 2)).reshape(d, n * K)
-            pair = box_certificates(offsets, np.repeat(half, K, axis=1))
-            lam = np.ascontiguousarray(np.transpose(pair.lam.reshape(2 * d, n, K), (1, 0, 2)))
-        else:
-            lam = np.empty((0, 2 * d, K))
-        certs = [certifier(own) for certifier in self.obstacles]
-        return self.rows(own, copies, half, lam, tuple(c.lam for c in certs))
+            columns = np.repeat(half, K, axis=1) if columns is None else columns
+            direction, _ = box_normals(offsets.transpose(1, 0, 2).reshape(d, n * K), columns)
+            direction = direction.reshape(d, n, K).transpose(1, 0, 2)
+            np.maximum(direction, 0.0, out=lam[:, :d])  # lambda_+, then lambda_-
+            np.maximum(-direction, 0.0, out=lam[:, d:])
+        certs = tuple(certifier(own).lam for certifier in self.obstacles)
+        return self.rows_at(own, offsets, half, lam, certs)
 
     def rows(self, own: np.ndarray, copies: np.ndarray, delta: np.ndarray, pair_lam: np.ndarray,
              obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
@@ -327,8 +338,12 @@ class Certifier:
         :func:`swarmpc.formulation.certificates.pair_rows` with its own Delta:
         n = lambda_+ - lambda_-, constant = Delta_c^T (lambda_+ + lambda_-)."""
         d, K = own.shape
-        n = len(copies)
-        half = copy_deltas(delta, n, d)
+        return self.rows_at(own, own[None] - copies, copy_deltas(delta, len(copies), d), pair_lam, obstacle_lam)
+
+    def rows_at(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray, pair_lam: np.ndarray,
+                obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
+        """:meth:`rows` from the offsets own - copies (n, d, K) and the pairs' Delta (d, n)."""
+        d, K = own.shape
         normal = pair_lam[:, :d] - pair_lam[:, d:]
         constant = np.einsum("dn,ndk->nk", half, pair_lam[:, :d] + pair_lam[:, d:])
         if self.G:
@@ -336,10 +351,10 @@ class Certifier:
             o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam, strict=True)]).reshape(-1, K)
             o_value = np.einsum("odk,dk->ok", o_normal, own) - o_constant
         else:  # no obstacles: empty rows
-            o_normal, o_constant, o_value = np.zeros((0, d, K)), np.zeros((0, K)), np.zeros((0, K))
+            o_normal, o_constant, o_value = self._no_obstacle
         return Linearisation(
             pair_lam=pair_lam, pair_normal=normal, pair_constant=constant,
-            pair_value=np.einsum("ndk,ndk->nk", normal, own[None] - copies) - constant,
+            pair_value=np.einsum("ndk,ndk->nk", normal, offsets) - constant,
             obstacle_lam=obstacle_lam, obstacle_normal=o_normal, obstacle_constant=o_constant,
             obstacle_value=o_value,
         )
@@ -375,6 +390,8 @@ class LocalQPProblem:
         self.speed_normals, ratio = speed_polytope(s.dim, options.speed_facets) if s.speed else (None, 1.0)
         self.speed_bound = ratio * s.speed - options.margin if s.speed else np.inf
         self._copy_keys = ([f"Y{c}" for c in range(shape.copies)], [f"Z{c}" for c in range(shape.copies)])
+        self._goal_weights = (-2.0 * s.Q, -2.0 * s.Qf)
+        """The goal's weights in q (states before the last, the last)."""
         self._cost_pattern()
         self._constraint_pattern()
 
@@ -405,22 +422,32 @@ class LocalQPProblem:
         base, own, copy = self._P_parts
         return base + rho * owner_weight * own + rho * copy
 
-    def linear_cost(self, params: dict[str, Any]) -> np.ndarray:
+    def copy_targets(self, params: dict[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The copies' multipliers and consensus targets (``Y{c}``, ``Z{c}``) stacked (n, d, K)
+        each; None without copies. A call reads them once for its linear cost and objective."""
+        if not self.shape.copies:
+            return None
+        Y = np.array([params[key] for key in self._copy_keys[0]], float)
+        return Y, np.array([params[key] for key in self._copy_keys[1]], float)
+
+    def linear_cost(self, params: dict[str, Any],
+                    targets: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """q: goal tracking, consensus (gamma - rho_b z per block) and slack prices, written
-        block by block in the layout's order."""
+        block by block in the layout's order; ``targets``: :meth:`copy_targets` of ``params``
+        when the caller has them."""
         s, lay, first = self.settings, self.layout, self.settings.first_constrained_step
         goal = np.asarray(params["goal"], float)
         rho, weight = float(params["rho"]), float(params["owner_weight"])
-        states = np.empty((s.horizon + 1, s.model.state_dim))
-        states[:-1] = -2.0 * s.Q @ goal
-        states[-1] = -2.0 * s.Qf @ goal
+        q = np.zeros(lay.size)
+        states = q[: (s.horizon + 1) * s.model.state_dim].reshape(s.horizon + 1, s.model.state_dim)  # a view
+        states[:-1] = self._goal_weights[0] @ goal
+        states[-1] = self._goal_weights[1] @ goal
         consensus = np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)
         states[first:, s.model.position_rows] += consensus.T
-        q = np.zeros(lay.size)
-        q[: states.size] = states.ravel()
         if not self.shape.pinned and self.shape.copies:
-            Y = np.array([params[key] for key in self._copy_keys[0]], float)
-            Z = np.array([params[key] for key in self._copy_keys[1]], float)
+            stacked = targets if targets is not None else self.copy_targets(params)
+            assert stacked is not None  # there are copies
+            Y, Z = stacked
             q[lay.copy_start: lay.slack_start] = np.transpose(Y - rho * Z, (0, 2, 1)).ravel()
         q[lay.slack_start:] = s.kappa
         return q
@@ -594,7 +621,8 @@ class OSQPBackend:
             self._core.update_data_mat(P_x=P_data, P_i=None, A_x=A_data, A_i=None)
 
     def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer:
-        self._solver.warm_start(x=x, y=y if y is not None else np.zeros(self._solver.m))
+        start = self._core if self._core is not None else self._solver  # the interface only passes it on
+        start.warm_start(x, y if y is not None else np.zeros(self._solver.m))
         if self._core is None:
             result = self._solver.solve(raise_error=False)
             info, primal, dual = result.info, result.x, result.y
@@ -729,15 +757,16 @@ class LocalQP:
         q = pb.linear_cost(params) if q is None else q
         lower, upper = pb.bounds(lin, params, pinned, slack_caps)
         key = (float(params["rho"]), float(params["owner_weight"]))
-        P_data = pb.cost_values(*key)
+        P_data = pb.cost_values(*key) if key != self._P_key else None  # None: P's values unchanged
         A_data = pb.constraint_values(lin, params)
         if not self._ready:
+            P_data = pb.cost_values(*key) if P_data is None else P_data
             self.backend.setup(sp.csc_matrix((P_data, pb.P.indices, pb.P.indptr), shape=pb.P.shape), q,
                                sp.csc_matrix((A_data, pb.A.indices, pb.A.indptr), shape=pb.A.shape), lower, upper)
             self._ready = True
         else:
             same_A = self._A_data is not None and np.array_equal(A_data, self._A_data)
-            self.backend.update(q, lower, upper, P_data if key != self._P_key else None, None if same_A else A_data)
+            self.backend.update(q, lower, upper, P_data, None if same_A else A_data)
         self._P_key, self._A_data = key, A_data
         return self.backend.solve(start, y)
 
@@ -771,6 +800,18 @@ def rollout_matrices(s: OCPSettings) -> tuple[np.ndarray, np.ndarray]:
 def local_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: OCPSettings, copies: int) -> float:
     """The NLP objective of :func:`swarmpc.formulation.ocp.build_local` at named blocks (X, U,
     C{c}, A{c}, A_o{n}): tracking cost + consensus terms + kappa * slacks."""
+    stacked = None
+    if copies:
+        slots = range(copies)
+        stacked = (np.array([blocks[f"C{c}"] for c in slots]), np.array([params[f"Y{c}"] for c in slots]),
+                   np.array([params[f"Z{c}"] for c in slots]))
+    return stacked_objective(blocks, params, s, stacked)
+
+
+def stacked_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: OCPSettings,
+                      copies: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> float:
+    """:func:`local_objective` with the copies, their multipliers and targets (C, Y, Z) stacked
+    (n, d, K) each, C-contiguous (None: no copies): the local step has them stacked already."""
     first = s.first_constrained_step
     X, U, goal = blocks["X"], blocks["U"], np.asarray(params["goal"], float)
     err = X - goal[:, None]
@@ -779,10 +820,9 @@ def local_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: OC
     rho, weight = float(params["rho"]), float(params["owner_weight"])
     diff = X[s.model.position_rows, first:] - np.asarray(params["Z"], float)
     cost += float((np.asarray(params["Y"], float) * diff).sum() + 0.5 * rho * weight * (diff * diff).sum())
-    if copies:
-        slots = range(copies)
-        diff = np.array([blocks[f"C{c}"] for c in slots]) - np.array([params[f"Z{c}"] for c in slots])
-        multipliers = np.array([params[f"Y{c}"] for c in slots])
+    if copies is not None:
+        C, multipliers, Z = copies
+        diff = C - Z
         cost += float((multipliers * diff).sum() + 0.5 * rho * (diff * diff).sum())
     slack = 0.0
     for key, value in blocks.items():
@@ -917,6 +957,22 @@ class LoopRecord:
     """Rounds whose QP answer was exact on its active set (OSQP: polished)."""
 
 
+Pairs = tuple[np.ndarray, np.ndarray | None]
+"""A call's pairs: their Delta (d, n), and the same repeated per constrained step (d, n K)."""
+
+Call = tuple[dict[str, Any], tuple[np.ndarray, np.ndarray] | None, Pairs, list[Any], int]
+"""What every certificate loop of a call shares: parameters, the copies' stacked multipliers and
+targets, the pairs, the tally (rounds, QP iterations, solver time, exact answers), the round cap."""
+
+
+def _row_change(old: np.ndarray, new: np.ndarray, near: np.ndarray) -> float:
+    """Largest change between two certificate normals (rows, d, K) over the rows ``near`` (rows, K)
+    their bound (0 when none is)."""
+    if not np.any(near):
+        return 0.0
+    return max(0.0, float((np.abs(old - new) * near[:, None, :]).max()))
+
+
 class SequentialLocalQP:
     """One shape's local step: the certificate loop around :class:`LocalQP` (module docstring),
     then the exact rebuild and check of the plan. Returns :class:`NLPSolution` with the blocks
@@ -929,6 +985,12 @@ class SequentialLocalQP:
         self.qp = LocalQP(self.problem, backend or qp_backend(options, shape.pinned))
         self.certify = Certifier(s)
         self.transition, self.response = rollout_matrices(s)
+        lower, upper = s.model.input_bounds(s.accel, s.speed)
+        self._input_box = (lower[:, None], upper[:, None])
+        """The input box as columns (m, 1) (:meth:`rebuild` clips to it on every call)."""
+        self._block_keys = [(f"C{c}", f"L{c}", f"A{c}") for c in range(shape.copies)]
+        self._workspace = (s.lower[:, None], s.upper[:, None]) if s.lower is not None and s.upper is not None else None
+        """The workspace box as columns (d, 1) (:meth:`violation` checks it on every call)."""
         self.proof = SeparationProof(s, self.transition, self.response, options.margin) if (
             shape.pinned and shape.pair_collision == "hard") else None
         """Decides failed repair calls that no solver can answer (:data:`PROVEN_INFEASIBLE`)."""
@@ -942,7 +1004,7 @@ class SequentialLocalQP:
         linearised with last (as the NLP's vector carries its L blocks)."""
 
     def _start(
-        self, guess: dict[str, np.ndarray] | np.ndarray, delta: np.ndarray, pinned: np.ndarray | None,
+        self, guess: dict[str, np.ndarray] | np.ndarray, pairs: Pairs, pinned: np.ndarray | None,
     ) -> tuple[np.ndarray, Linearisation]:
         """The QP's start and first certificates: those a solution vector carries, else the best
         certificates of the guessed blocks."""
@@ -950,9 +1012,18 @@ class SequentialLocalQP:
             size = self.problem.layout.size
             x = guess[:size].copy()
             pair, obstacles = self.certify.unpack(guess[size:], self.shape.copies)
-            return x, self.certify.rows(*self.positions(x, pinned), delta, pair, obstacles)
+            own, copies = self.positions(x, pinned)
+            return x, self.certify.rows_at(own, own[None] - copies, pairs[0], pair, obstacles)
         x = self.start_point(guess)
-        return x, self.certify(*self.positions(x, pinned), delta)
+        return x, self._certified(x, pinned, pairs)[0]
+
+    def _certified(self, x: np.ndarray, pinned: np.ndarray | None,
+                   pairs: Pairs) -> tuple[Linearisation, np.ndarray, np.ndarray]:
+        """(best certificates, own positions (d, K), offsets own - copies (n, d, K)) of a primal
+        vector; ``pairs``: (the pairs' Delta (d, n), the same repeated per step (d, n K))."""
+        own, copies = self.positions(x, pinned)
+        offsets = own[None] - copies
+        return self.certify.best(own, offsets, *pairs), own, offsets
 
     def start_point(self, guess: dict[str, np.ndarray]) -> np.ndarray:
         """A primal vector in this QP's layout from named blocks (X, U, C{c})."""
@@ -1002,7 +1073,7 @@ class SequentialLocalQP:
     def positions(self, x: np.ndarray, pinned: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Own constrained positions (d, K) and the copies (n, d, K) of a primal vector."""
         lay = self.problem.layout
-        return x[lay.own], (pinned if pinned is not None else x[lay.C])
+        return x.take(lay.own), (pinned if pinned is not None else x.take(lay.C))
 
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, pinned: np.ndarray | None = None,
@@ -1024,10 +1095,13 @@ class SequentialLocalQP:
         the very problem whose restarts failed last (a repair retried from another start)."""
         began = time.perf_counter()
         delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
-        x, lin = self._start(guess, delta, pinned)
+        pairs = (delta, np.repeat(delta, self.settings.num_constrained, axis=1) if self.shape.copies else None)
+        targets = self.problem.copy_targets(params)
+        x, lin = self._start(guess, pairs, pinned)
         tally: list[Any] = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
         cap = self.options.max_rounds if rounds is None else min(rounds, self.options.max_rounds)
-        answer, x, lin, converged = self._loop(params, x, lin, y, (pinned, slack_caps), delta, tally, cap)
+        call = (params, targets, pairs, tally, cap)
+        answer, x, lin, converged = self._loop(call, x, lin, y, (pinned, slack_caps))
         proven = (not answer.solved and self.proof is not None and pinned is not None
                   and self.proof.infeasible(params["x0"], pinned, delta))
         restart = restarts and not answer.solved and tally[0] == 1 and not proven  # none help a proven call
@@ -1035,8 +1109,8 @@ class SequentialLocalQP:
         for plan in self._fallback_plans(params) if restart and key != self._failed_restarts else []:
             start = x.copy()
             start[self.problem.layout.X] = plan
-            lin = self.certify(*self.positions(start, pinned), delta)
-            answer, x, lin, converged = self._loop(params, start, lin, None, (pinned, slack_caps), delta, tally, cap)
+            lin = self._certified(start, pinned, pairs)[0]
+            answer, x, lin, converged = self._loop(call, start, lin, None, (pinned, slack_caps))
             if answer.solved:
                 break
         if restart and not answer.solved:
@@ -1046,7 +1120,7 @@ class SequentialLocalQP:
         self.last_record = LoopRecord(tally[0], tally[1], tally[2], wall, converged, tally[3])
         if not answer.solved:
             return self._failed(x, status, wall, tally[1])
-        return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged)
+        return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged, pairs, targets)
 
     def _problem_key(
         self, params: dict[str, Any], pinned: np.ndarray | None, slack_caps: dict[int, float] | None,
@@ -1062,14 +1136,15 @@ class SequentialLocalQP:
         return b"".join(np.ascontiguousarray(part, float).tobytes() for part in parts)
 
     def _loop(
-        self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray | None,
-        fixed: tuple[np.ndarray | None, dict[int, float] | None], delta: np.ndarray, tally: list[Any], rounds: int,
+        self, call: Call, x: np.ndarray, lin: Linearisation, y: np.ndarray | None,
+        fixed: tuple[np.ndarray | None, dict[int, float] | None],
     ) -> tuple[QPAnswer, np.ndarray, Linearisation, bool]:
-        """The certificate loop from (x, lin), ``rounds`` at most, with ``fixed`` = (pinned copies,
-        slack caps): (last answer, plan, its best certificates, converged)."""
+        """The certificate loop from (x, lin), ``call``'s rounds at most, with ``fixed`` = (pinned
+        copies, slack caps): (last answer, plan, its best certificates, converged)."""
+        params, targets, pairs, tally, rounds = call
         pinned, slack_caps = fixed
         converged = False
-        q = self.problem.linear_cost(params)
+        q = self.problem.linear_cost(params, targets)
         for _ in range(rounds):
             answer = self.qp.solve(params, lin, x, y, pinned, slack_caps, q)
             tally[0] += 1
@@ -1078,10 +1153,10 @@ class SequentialLocalQP:
             tally[3] += answer.exact
             if not answer.solved:
                 break
-            new = self.certify(*self.positions(answer.x, pinned), delta)
-            moved = float(np.max(np.abs(answer.x - x))) if x.size else 0.0
+            new, own, offsets = self._certified(answer.x, pinned, pairs)
+            moved = float(np.abs(answer.x - x).max()) if x.size else 0.0
             x, y = answer.x, answer.y
-            converged = moved <= self.options.plan_tol or self._settled(lin, new, *self.positions(x, pinned))
+            converged = moved <= self.options.plan_tol or self._settled(lin, new, own, offsets)
             lin = new
             if converged:
                 break
@@ -1097,20 +1172,18 @@ class SequentialLocalQP:
         brake = model.rollout(state, model.braking_inputs(state, s.horizon, s.accel)).T
         return [coast, brake]
 
-    def _settled(self, old: Linearisation, new: Linearisation, own: np.ndarray, copies: np.ndarray) -> bool:
+    def _settled(self, old: Linearisation, new: Linearisation, own: np.ndarray, offsets: np.ndarray) -> bool:
         """True when the certificates of the rows the last QP held at (or near) their bound
         changed less than the tolerance. Rows it left clear stay clear under the new
-        certificates (their exact value can only be larger), so only these can move the answer."""
+        certificates (their exact value can only be larger), so only these can move the answer.
+        ``own``: the plan's positions (d, K), ``offsets``: own - copies (n, d, K)."""
         o, s = self.options, self.settings
         bound = s.d_min + o.margin + o.active_band
-        pair = np.einsum("ndk,ndk->nk", old.pair_normal, own[None] - copies) - old.pair_constant
-        obstacle = np.einsum("odk,dk->ok", old.obstacle_normal, own) - old.obstacle_constant
-        change = 0.0
-        for old_n, new_n, value in ((old.pair_normal, new.pair_normal, pair),
-                                    (old.obstacle_normal, new.obstacle_normal, obstacle)):
-            near = value <= bound
-            if np.any(near):
-                change = max(change, float(np.max(np.abs(old_n - new_n) * near[:, None, :])))
+        pair = np.einsum("ndk,ndk->nk", old.pair_normal, offsets) - old.pair_constant
+        change = _row_change(old.pair_normal, new.pair_normal, pair <= bound)
+        if len(old.obstacle_normal) and change <= o.certificate_tol:  # no obstacles: no rows to compare
+            obstacle = np.einsum("odk,dk->ok", old.obstacle_normal, own) - old.obstacle_constant
+            change = max(change, _row_change(old.obstacle_normal, new.obstacle_normal, obstacle <= bound))
         return change <= o.certificate_tol
 
     def verified(self, params: dict[str, Any], X: np.ndarray, U: np.ndarray,
@@ -1143,35 +1216,36 @@ class SequentialLocalQP:
         """Inputs (m, N) clipped to their box and the states (s, N+1) they drive from ``state``:
         the applied plan meets the dynamics and the input limits exactly."""
         s = self.settings
-        lower, upper = s.model.input_bounds(s.accel, s.speed)
-        U = np.clip(inputs, lower[:, None], upper[:, None]) if s.accel is not None else inputs.copy()
+        U = np.clip(inputs, *self._input_box) if s.accel is not None else inputs.copy()
         X = (self.transition @ state + self.response @ U.ravel(order="F")).reshape(s.horizon + 1, s.model.state_dim).T
         return X, U
 
     def _result(
         self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray, pinned: np.ndarray | None,
-        wall: float, rounds: int, converged: bool,
+        wall: float, rounds: int, converged: bool, pairs: Pairs, targets: tuple[np.ndarray, np.ndarray] | None,
     ) -> NLPSolution:
         """The rebuilt plan, certified by the last round's certificates (their values at the
         rebuilt positions are lower bounds on the distances, so a plan they clear is clear),
         or by the best certificates of the rebuilt plan if those do not clear it."""
-        s, lay, n = self.settings, self.problem.layout, self.shape.copies
-        X, U = self.rebuild(np.asarray(params["x0"], float), x[lay.U])
+        s, lay = self.settings, self.problem.layout
+        X, U = self.rebuild(np.asarray(params["x0"], float), x.take(lay.U))
         own = X[s.model.position_rows, s.first_constrained_step:]
-        copies = pinned if pinned is not None else x[lay.C]
-        delta = copy_deltas(params["delta"], n, s.dim)
-        final = self.certify.rows(own, copies, delta, lin.pair_lam, lin.obstacle_lam)
+        copies = pinned if pinned is not None else x.take(lay.C)
+        offsets = own[None] - copies
+        final = self.certify.rows_at(own, offsets, pairs[0], lin.pair_lam, lin.obstacle_lam)
         violation = self.violation(X, final, params)
         if violation > 0.0:
-            final = self.certify(own, copies, delta)
+            final = self.certify.best(own, offsets, *pairs)
             violation = self.violation(X, final, params)
         blocks = self._blocks(X, U, copies, final)
         status = "solved" if converged else "max_rounds"
         if violation > 0.0:
             status = f"unsafe_{violation:.1e}"
+        stacked = None if targets is None else (np.ascontiguousarray(copies, float), *targets)
         return NLPSolution(
-            x=blocks, x_vec=np.concatenate([x, self.certify.pack(lin)]), lam_x=np.zeros(0), lam_g=y,
-            cost=local_objective(blocks, params, s, n), success=violation <= 0.0, status=status,
+            x=blocks, x_vec=np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]]),
+            lam_x=np.zeros(0), lam_g=y, cost=stacked_objective(blocks, params, s, stacked),
+            success=violation <= 0.0, status=status,
             iterations=rounds, solve_time=wall,
         )
 
@@ -1179,11 +1253,12 @@ class SequentialLocalQP:
         """The NLP's named blocks: plan, copies, certificates and the least slacks they need."""
         s = self.settings
         blocks: dict[str, np.ndarray] = {"X": X, "U": U}
-        for c in range(self.shape.copies):
-            blocks[f"C{c}"] = copies[c]
-            blocks[f"L{c}"] = lin.pair_lam[c]
-            if self.shape.pair_collision == "soft":
-                blocks[f"A{c}"] = np.maximum(s.d_min - lin.pair_value[c], 0.0)[None, :]
+        soft = self.shape.pair_collision == "soft"
+        for c, (C, L, A) in enumerate(self._block_keys):
+            blocks[C] = copies[c]
+            blocks[L] = lin.pair_lam[c]
+            if soft:
+                blocks[A] = np.maximum(s.d_min - lin.pair_value[c], 0.0)[None, :]
         for o, lam in enumerate(lin.obstacle_lam):
             blocks[f"L_o{o}"] = lam
             if s.collision == "soft":
@@ -1198,16 +1273,16 @@ class SequentialLocalQP:
         s, first = self.settings, self.settings.first_constrained_step
         gaps = [0.0]
         if self.shape.pair_collision == "hard" and lin.pair_value.size:
-            gaps.append(float(np.max(s.d_min - lin.pair_value)))
+            gaps.append(float((s.d_min - lin.pair_value).max()))
         if s.collision == "hard" and lin.obstacle_value.size:
-            gaps.append(float(np.max(s.d_min - lin.obstacle_value)))
+            gaps.append(float((s.d_min - lin.obstacle_value).max()))
         own = X[s.model.position_rows, first:]
         for p in range(self.shape.planes):
             gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
-        if s.lower is not None and s.upper is not None:
-            gaps += [float(np.max(s.lower[:, None] - own)), float(np.max(own - s.upper[:, None]))]
+        if self._workspace is not None:
+            gaps += [float((self._workspace[0] - own).max()), float((own - self._workspace[1]).max())]
         if s.speed is not None:
-            gaps.append(float(np.max(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1)) - s.speed))
+            gaps.append(float(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1).max()) - s.speed)
         return max(gaps)
 
 
@@ -1266,7 +1341,7 @@ class QPLocalLadder:
         if any(key.startswith("C") for key in fixed):
             pinned = self._pinned(fixed, copies)
         caps = {c: float(np.max(fixed[f"A{c}"])) for c in range(copies)
-                if f"A{c}" in fixed and self.pair_collision == "soft"}
+                if f"A{c}" in fixed} if fixed and self.pair_collision == "soft" else {}
         with self._lock:
             shape = LocalShape(copies, planes, pinned is not None, self.pair_collision)
             stepper = self.stepper(shape)

@@ -76,10 +76,12 @@ def consensus_targets(request: LocalRequest, params: dict[str, Any]) -> Targets:
     """(rho, owner weight, every block's target z - gamma / rho_b): the local problem depends
     on the consensus only through these, the cost being rho_b / 2 ||v - target||^2 + const."""
     rho, weight = float(request.rho), float(request.owner_weight)
-    blocks = [np.asarray(params["Z"]) - np.asarray(params["Y"]) / (rho * weight)]
-    blocks += [np.asarray(params[f"Z{slot}"]) - np.asarray(params[f"Y{slot}"]) / rho
-               for slot in range(len(request.neighbours))]
-    return rho, weight, np.concatenate([b.ravel() for b in blocks])
+    own = np.asarray(params["Z"]) - np.asarray(params["Y"]) / (rho * weight)
+    slots = range(len(request.neighbours))
+    if not slots:
+        return rho, weight, own.ravel().copy()
+    copies = np.array([params[f"Z{slot}"] for slot in slots]) - np.array([params[f"Y{slot}"] for slot in slots]) / rho
+    return rho, weight, np.concatenate([own.ravel(), copies.ravel()])  # the copies' blocks stacked, slot by slot
 
 
 def _shifted(multiplier: np.ndarray) -> np.ndarray:
@@ -129,9 +131,12 @@ class ConsensusMultipliers:
         self.own = (self.own if self.own is not None else 0.0) + (
             rho * request.owner_weight * (_relaxed(last.own, alpha, own_before) - request.z_own)
         )
+        sent: dict[int, int] = {}  # neighbour -> its (first) copy in ``last``
+        for slot, j in enumerate(last_neighbours):
+            sent.setdefault(j, slot)
         for slot, j in enumerate(request.neighbours):
-            if j in last_neighbours:
-                previous = _relaxed(last.copies[last_neighbours.index(j)], alpha, copies_before.get(j))
+            if j in sent:
+                previous = _relaxed(last.copies[sent[j]], alpha, copies_before.get(j))
                 self.copies[j] = self.copies.get(j, 0.0) + rho * (previous - request.z_neighbours[slot])
 
     def parameters(self, request: LocalRequest) -> dict[str, np.ndarray]:

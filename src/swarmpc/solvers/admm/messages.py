@@ -76,7 +76,12 @@ class LocalRequest:
     def pair_deltas(self) -> np.ndarray:
         """(n, d) Delta_ij of the pair with each neighbour (``delta`` broadcast when it is one value)."""
         d = np.asarray(self.z_own).shape[0]
-        return np.broadcast_to(np.asarray(self.delta, float), (len(self.neighbours), d))
+        delta = np.asarray(self.delta, float)
+        if delta.shape != (len(self.neighbours), d):
+            return np.broadcast_to(delta, (len(self.neighbours), d))
+        view = delta.view()  # one per neighbour already: the values as they are, read-only as broadcast
+        view.flags.writeable = False
+        return view
 
     @property
     def repair(self) -> bool:
