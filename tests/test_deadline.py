@@ -7,6 +7,7 @@ deadline may only remove ADMM iterations: every plan is still made safe by the r
 from __future__ import annotations
 
 import json
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -73,6 +74,28 @@ def test_the_critical_path_is_recorded_and_bounded(tmp_path):
     assert summary["deadline_s"] == scn.dt  # no deadline set: counted against the sample period
     assert summary["deadline_misses"] == int(np.sum(path_ms > 1000.0 * scn.dt))
     assert summary["deadline_stops"] == 0
+
+
+def test_an_agents_time_counts_its_whole_local_step_not_only_its_solver(crossing, monkeypatch):
+    """Bookkeeping an agent does around its solver calls is compute it spends: an agent that
+    dawdles PAUSE seconds per request outside its solver is charged for it in ``agent_times``."""
+    from swarmpc.solvers.admm.agent import LocalAgent
+
+    pause, solve = 0.004, LocalAgent.solve
+
+    def dawdling(self, request):
+        began = time.perf_counter()
+        while time.perf_counter() - began < pause:
+            pass
+        return solve(self, request)
+
+    monkeypatch.setattr(LocalAgent, "solve", dawdling)
+    scn, states = crossing
+    _, _, records = fly(scn.with_updates(**{"solver.local": "qp"}), states, 3)
+    for k, record in enumerate(records):
+        # every agent is asked at least once per ADMM iteration
+        assert record.agent_times.min() >= pause * record.admm_iterations, f"step {k}"
+        assert record.critical_path_s >= record.agent_times.max(), f"step {k}"
 
 
 def test_a_centralised_step_is_all_on_the_critical_path():
@@ -304,3 +327,16 @@ def test_a_deadline_stop_repairs_uncoupled_agents_in_one_batch():
         agents = [agent for agent, _ in batch]
         assert len(set(agents)) == len(agents)
         assert not any(other in agents for _, neighbours in batch for other in neighbours)
+
+
+def test_a_replan_whose_answer_is_not_taken_still_charges_its_compute():
+    from swarmpc.solvers.admm.messages import LocalResult, TimedResult, compute_time, timed_as
+
+    plan = dict(agent=0, own=np.zeros((2, 3)), copies=np.zeros((0, 2, 3)), states=np.zeros((4, 4)),
+                inputs=np.zeros((3, 2)), success=True, fallback=False, max_slack=0.0, cost=1.0)
+    kept = LocalResult(**plan, solve_time=0.0)
+    answer = TimedResult(**{**plan, "success": False}, solve_time=0.002, call_time=0.003)
+    charged = timed_as(kept, answer)
+    assert compute_time(charged) == 0.003 and charged.success and charged.cost == 1.0
+    assert compute_time(timed_as(kept, LocalResult(**plan, solve_time=0.002))) == 0.002
+    assert compute_time(kept) == 0.0

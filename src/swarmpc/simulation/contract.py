@@ -181,8 +181,9 @@ SUMMARY_KEYS: tuple[KeyDoc, ...] = (
     KeyDoc("step_time_ms.max", "number or null", "ms", "always", "Slowest step."),
     KeyDoc(
         "agent_step_time_ms", "mapping", "ms", "always",
-        "One agent's solve time in one step (summed over its ADMM iterations; centralised: the step's "
-        "time / M).",
+        "One agent's compute in one step: its whole local steps (solver calls and the bookkeeping "
+        "around them, timed where the agent runs), summed over its ADMM iterations and safety passes; "
+        "centralised: the step's time / M.",
     ),
     KeyDoc("agent_step_time_ms.median", "number or null", "ms", "always", "Median over steps and agents."),
     KeyDoc("agent_step_time_ms.p95", "number or null", "ms", "always", "95th percentile over steps and agents."),
@@ -310,7 +311,8 @@ ARRAYS: tuple[ArrayDoc, ...] = (
     ),
     ArrayDoc(
         "steps.npz", "agent_time_s", "(T, M)", "float64", "s", "always",
-        "Each agent's solve time in each step, summed over its ADMM iterations (centralised: step time / M).",
+        "Each agent's compute in each step (its whole local steps, timed where it runs), summed over its "
+        "ADMM iterations and safety passes (centralised: step time / M).",
     ),
     ArrayDoc("steps.npz", "failures", "(T,)", "int64", "–", "always", "Failed solve calls in each step."),
     ArrayDoc(

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import fields
 from typing import Any
 
-from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, TimedResult
+from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, TimedResult, compute_time
 from swarmpc.solvers.executors import Executor
 
 BATCH_WINDOW = 20
@@ -107,7 +107,7 @@ class StepClock:
         began = self.clock()
         results = executor.solve(requests)
         batch = self.clock() - began
-        slowest = max((getattr(r, "call_time", r.solve_time) for r in results), default=0.0)
+        slowest = max((compute_time(r) for r in results), default=0.0)
         self._overlap += max(batch - slowest, 0.0)
         return results
 

@@ -22,7 +22,7 @@ import numpy as np
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.solvers.admm.clock import BatchBudget
 from swarmpc.solvers.admm.graph import CouplingGraph
-from swarmpc.solvers.admm.messages import LocalResult, StepRequests
+from swarmpc.solvers.admm.messages import LocalResult, StepRequests, compute_time
 from swarmpc.solvers.admm.replan import Replanner, Solve
 from swarmpc.solvers.admm.safety import SafetyChecks
 from swarmpc.solvers.admm.schedule import LevelSchedule, colour_order
@@ -49,7 +49,7 @@ def new_solves(
     """Solve time per agent and failed solves of the answers a repair pass produced (those not
     carried over from ``previous``; ``every``: all of them)."""
     new = [every or r is not old for r, old in zip(results, previous, strict=True)]
-    times = np.array([r.solve_time if fresh else 0.0 for r, fresh in zip(results, new, strict=True)])
+    times = np.array([compute_time(r) if fresh else 0.0 for r, fresh in zip(results, new, strict=True)])
     return times, sum(fresh and not r.success for r, fresh in zip(results, new, strict=True))
 
 

@@ -25,7 +25,7 @@ from swarmpc.solvers.admm.consensus import (
     starting_consensus,
 )
 from swarmpc.solvers.admm.graph import CouplingGraph, guess_neighbours, reachable_guesses
-from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests
+from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests, compute_time
 from swarmpc.solvers.admm.repair import Repair, SafePlans, committed_plans
 from swarmpc.solvers.admm.safety import SafetyChecks, own_positions
 from swarmpc.solvers.base import PlanStep
@@ -247,7 +247,7 @@ class ADMMSolver:
             results = self._solve([requests.request(i, graph, z, penalty.rho, penalty.previous, new,
                                                     carry=carry[i] if new else ()) for i in range(M)])
             for r in results:
-                agent_times[r.agent] += r.solve_time
+                agent_times[r.agent] += compute_time(r)
             failures += sum(not r.success for r in results)
             z_new, weights = average(results, graph.neighbours, cfg.owner_weight, cfg.relaxation, z)
             r_norm = primal_residual(results, graph.neighbours, z_new)
