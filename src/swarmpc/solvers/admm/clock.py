@@ -45,11 +45,14 @@ class TimedAgent:
     def __setattr__(self, name: str, value: Any) -> None:
         setattr(self._inner, name, value)
 
+    _FIELDS = tuple(f.name for f in fields(LocalResult))
+    """The fields an answer carries over (read once: ``fields`` walks the class on every call)."""
+
     def solve(self, request: LocalRequest) -> TimedResult:
         started = time.perf_counter()
         result = self._inner.solve(request)
         elapsed = time.perf_counter() - started
-        return TimedResult(**{f.name: getattr(result, f.name) for f in fields(LocalResult)}, call_time=elapsed)
+        return TimedResult(**{name: getattr(result, name) for name in self._FIELDS}, call_time=elapsed)
 
 
 class TimedAgentFactory:

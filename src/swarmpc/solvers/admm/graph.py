@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from types import MappingProxyType
 
 import numpy as np
@@ -335,11 +336,21 @@ class CouplingGraph:
     def planes_of(self, i: int) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Agent ``i``'s planes as (normals (P, d, K), offsets (P, K)), by partner index; (None,
         None) without planes."""
-        partners = sorted(self.planes[i])
-        if not partners:
-            return None, None
-        return (np.array([self.planes[i][j][0] for j in partners]),
-                np.array([self.planes[i][j][1] for j in partners]))
+        return self._stacked_planes[i]
+
+    @cached_property
+    def _stacked_planes(self) -> tuple[tuple[np.ndarray | None, np.ndarray | None], ...]:
+        """:meth:`planes_of` of every agent, stacked once per graph (read-only: requests share them)."""
+        stacked: list[tuple[np.ndarray | None, np.ndarray | None]] = []
+        for mine in self.planes:
+            partners = sorted(mine)
+            if not partners:
+                stacked.append((None, None))
+                continue
+            normals, offsets = np.array([mine[j][0] for j in partners]), np.array([mine[j][1] for j in partners])
+            normals.flags.writeable = offsets.flags.writeable = False
+            stacked.append((normals, offsets))
+        return tuple(stacked)
 
     @property
     def copies(self) -> np.ndarray:

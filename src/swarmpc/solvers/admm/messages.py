@@ -7,7 +7,7 @@ solutions stay inside the agent.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -158,6 +158,20 @@ class StepRequests:
     applied: tuple[np.ndarray, np.ndarray] | None = None
     """States (M, N+1, n) and inputs (M, N, m) of the plans the last step applied (None: none
     yet): the committed plans of :class:`~swarmpc.solvers.admm.settle.Settle`."""
+    _shared: dict[tuple[int, tuple[int, ...]], tuple[list[int], np.ndarray, np.ndarray]] = field(
+        default_factory=dict, init=False, repr=False)
+    """Agent and neighbours -> (the neighbours as a list, the pairs' Delta, the neighbours'
+    states): what every request of the agent with those neighbours in this step shares, made
+    once (the coordinator asks M requests per ADMM iteration)."""
+
+    def _neighbourhood(self, i: int, neighbours: tuple[int, ...]) -> tuple[list[int], np.ndarray, np.ndarray]:
+        key = (i, neighbours)
+        if key not in self._shared:
+            index = list(neighbours)
+            delta, states = self.bodies[i] + self.bodies[index], self.states[index]
+            delta.flags.writeable = states.flags.writeable = False  # shared by the agent's requests
+            self._shared[key] = (index, delta, states)
+        return self._shared[key]
 
     def request(
         self, i: int, graph: CouplingGraph, z: np.ndarray, rho: float, rho_previous: float, new_step: bool,
@@ -170,15 +184,16 @@ class StepRequests:
         s = self.settings
         neighbours = graph.neighbours[i]
         normals, offsets = graph.planes_of(i)
+        index, delta, neighbour_states = self._neighbourhood(i, neighbours)
         if plans is None:
-            z_neighbours = z[list(neighbours)]
+            z_neighbours = z[index]
         else:
             z_neighbours = np.transpose(s.model.position(plans[0][:, s.first_constrained_step:]), (0, 2, 1))
         return LocalRequest(
             agent=i,
             state=self.states[i],
             goal=self.goals[i],
-            delta=self.bodies[i] + self.bodies[list(neighbours)],
+            delta=delta,
             rho=rho,
             rho_previous=rho_previous,
             owner_weight=self.config.owner_weight if neighbours else 0.0,
@@ -186,7 +201,7 @@ class StepRequests:
             z_own=z[i],
             neighbours=neighbours,
             z_neighbours=z_neighbours.reshape(len(neighbours), s.dim, z.shape[2]),
-            neighbour_states=self.states[list(neighbours)],
+            neighbour_states=neighbour_states,
             guess=self.guess[i],
             neighbour_plans=plans,
             reuse_tol=self.config.reuse_tol,
