@@ -25,6 +25,7 @@ from swarmpc.config import (
     QPOptions,
     ScenarioError,
     SolverConfig,
+    default_local,
     load_scenario,
     scenario_from_dict,
     scenario_to_yaml,
@@ -158,6 +159,11 @@ def test_the_local_step_left_out_is_the_qp_step_for_point_agents_and_the_nlp_wit
     assert scenario_from_dict({**mixed, "solver": SolverConfig()}).solver.local == "ipopt"
     assert scenario_from_dict({**mixed, "solver": SolverConfig(local="qp")}).solver.local == "qp"
     assert scenario(solver={"admm": {"dynamic_copies": True}}).solver.local == "ipopt"  # the step that takes them
+    cars_and_copies = {**mixed, "solver": {"admm": {"dynamic_copies": True}}}
+    assert scenario_from_dict(cars_and_copies).solver.local == "ipopt"
+    # one rule: ipopt when either needs it
+    assert [default_local(cars, copies) for cars in (False, True) for copies in (False, True)] == \
+        ["qp", "ipopt", "ipopt", "ipopt"]
     with pytest.raises(ScenarioError, match="dynamic_copies"):
         scenario(solver={"local": "qp", "admm": {"dynamic_copies": True}})
     written = from_yaml(tmp_path, "")  # a written scenario records the local step it resolved to

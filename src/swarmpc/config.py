@@ -677,11 +677,20 @@ REMOVED_SOLVER_KEYS: typing.Mapping[str, str] = types.MappingProxyType({
 """``solver`` keys that were removed, with why and where their measurement is kept."""
 
 
-def default_local(has_cars: bool) -> Literal["qp", "ipopt"]:
-    """``solver.local`` of a scenario that leaves it out: ``qp`` for a swarm of point agents (as
-    good plans as the NLP's, several times faster), ``ipopt`` when some agent is a car (a car's
-    QP step, a sequential convex programme, is slower than its NLP: docs/lab/cars.md)."""
-    return "ipopt" if has_cars else "qp"
+def default_local(has_cars: bool = False, dynamic_copies: bool = False) -> Literal["qp", "ipopt"]:
+    """``solver.local`` of a scenario that leaves it out, the one rule for it: ``qp`` for a swarm of
+    point agents (as good plans as the NLP's, several times faster); ``ipopt`` when some agent is a
+    car (a car's QP step, a sequential convex programme, is slower than its NLP: docs/lab/cars.md)
+    or the ADMM copies are dynamic (``solver.admm.dynamic_copies``: the QP step takes free copies
+    only). :class:`SolverConfig` applies it with what it knows (the copies), :class:`Scenario` with
+    the agents too."""
+    return "ipopt" if has_cars or dynamic_copies else "qp"
+
+
+def _dynamic_copies(admm: Any) -> bool:
+    """Whether raw ``solver.admm`` data (a dict or an :class:`ADMMOptions`) ask for dynamic copies."""
+    dynamic = admm.get("dynamic_copies") if isinstance(admm, dict) else getattr(admm, "dynamic_copies", False)
+    return dynamic is True
 
 
 def _names_a_car(agents: Any) -> bool:
@@ -742,7 +751,7 @@ class SolverConfig(_Frozen):
         default=True, description="seed the OBCA certificates from the guess's geometry (else 0)"
     )
     local: Literal["qp", "ipopt"] = Field(
-        default=default_local(has_cars=False),
+        default=default_local(),
         description="ADMM agents' local step: qp (a short sequence of convex QPs (OSQP; PIQP in the repair "
         "passes, `solver.qp`) with the OBCA certificates held fixed, whose plans are collision-free as they stand; "
         "a call the QP path fails is solved by IPOPT instead; the speed limit is an inner polytope of the speed "
@@ -785,13 +794,13 @@ class SolverConfig(_Frozen):
 
     @model_validator(mode="before")
     @classmethod
-    def _local_step_of_dynamic_copies(cls, data: Any) -> Any:
-        """``local`` left out with ``admm.dynamic_copies``: ipopt, the local step that takes them."""
+    def _local_left_out(cls, data: Any) -> Any:
+        """``local`` left out: :func:`default_local` of the copies (set only where it is not the
+        field's default, so that a scenario can still tell it was left out)."""
         if isinstance(data, dict) and "local" not in data:
-            admm = data.get("admm")
-            dynamic = admm.get("dynamic_copies") if isinstance(admm, dict) else getattr(admm, "dynamic_copies", False)
-            if dynamic is True:
-                return {**data, "local": "ipopt"}
+            local = default_local(dynamic_copies=_dynamic_copies(data.get("admm")))
+            if local != default_local():
+                return {**data, "local": local}
         return data
 
     @model_validator(mode="after")
@@ -1211,14 +1220,18 @@ class Scenario(_Frozen):
     @model_validator(mode="before")
     @classmethod
     def _local_step_of_the_agents(cls, data: Any) -> Any:
-        """``solver.local`` left out: :func:`default_local` of the agents (qp, or ipopt with cars)."""
+        """``solver.local`` left out: :func:`default_local` of the agents and the copies (qp, or
+        ipopt with cars)."""
         if not isinstance(data, dict) or not _names_a_car(data.get("agents")):
             return data
         solver = data.get("solver")
         if solver is None or (isinstance(solver, dict) and "local" not in solver):
-            return {**data, "solver": {**(solver or {}), "local": default_local(has_cars=True)}}
+            admm = (solver or {}).get("admm")
+            local = default_local(has_cars=True, dynamic_copies=_dynamic_copies(admm))
+            return {**data, "solver": {**(solver or {}), "local": local}}
         if isinstance(solver, SolverConfig) and "local" not in solver.model_fields_set:
-            return {**data, "solver": solver.model_copy(update={"local": default_local(has_cars=True)})}
+            local = default_local(has_cars=True, dynamic_copies=solver.admm.dynamic_copies)
+            return {**data, "solver": solver.model_copy(update={"local": local})}
         return data
 
     @model_validator(mode="after")
