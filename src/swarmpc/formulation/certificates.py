@@ -126,7 +126,7 @@ def box_normals(q: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray
     every round, and lays lambda out itself."""
     excess = np.abs(q) - half
     outside = np.maximum(excess, 0.0)
-    gap = np.sqrt(np.einsum("ik,ik->k", outside, outside))
+    gap = np.sqrt((outside * outside).sum(0))  # the d terms in order, as einsum adds them
     is_out = gap > 0
     direction = np.copysign(outside, q) / np.where(is_out, gap, 1.0)  # |q| > half > 0 wherever it counts
     value = gap

@@ -293,6 +293,11 @@ class Linearisation:
     obstacle_value: np.ndarray
 
 
+def add_rows(products: np.ndarray) -> np.ndarray:
+    """Sum of (n, d, K) over its d axis, term by term in order (the sum ``einsum`` takes)."""
+    return products.sum(1)
+
+
 class Certifier:
     """Best certificates of an own plan against copies (delta boxes) and static obstacles, and
     the linear rows of given certificates."""
@@ -322,14 +327,18 @@ class Certifier:
         d, K = own.shape
         n = len(offsets)
         lam = np.empty((n, 2 * d, K))
-        if n:  # every copy in one call, each column against its pair's box
-            columns = np.repeat(half, K, axis=1) if columns is None else columns
-            direction, _ = box_normals(offsets.transpose(1, 0, 2).reshape(d, n * K), columns)
-            direction = direction.reshape(d, n, K).transpose(1, 0, 2)
-            np.maximum(direction, 0.0, out=lam[:, :d])  # lambda_+, then lambda_-
-            np.maximum(-direction, 0.0, out=lam[:, d:])
         certs = tuple(certifier(own).lam for certifier in self.obstacles)
-        return self.rows_at(own, offsets, half, lam, certs)
+        if not n:
+            return self.rows_at(own, offsets, half, lam, certs)
+        # every copy in one call, each column against its pair's box
+        columns = np.repeat(half, K, axis=1) if columns is None else columns
+        direction, _ = box_normals(offsets.transpose(1, 0, 2).reshape(d, n * K), columns)
+        direction = direction.reshape(d, n, K).transpose(1, 0, 2)
+        np.maximum(direction, 0.0, out=lam[:, :d])  # lambda_+, then lambda_-
+        np.maximum(-direction, 0.0, out=lam[:, d:])
+        # lambda_+ - lambda_- is the direction and lambda_+ + lambda_- its magnitude, bit for
+        # bit (one of the two is zero), so the rows are those of rows_at without re-deriving them
+        return self._rows(own, offsets, half, lam, direction, np.abs(direction), certs)
 
     def rows(self, own: np.ndarray, copies: np.ndarray, delta: np.ndarray, pair_lam: np.ndarray,
              obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
@@ -343,18 +352,26 @@ class Certifier:
     def rows_at(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray, pair_lam: np.ndarray,
                 obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
         """:meth:`rows` from the offsets own - copies (n, d, K) and the pairs' Delta (d, n)."""
-        d, K = own.shape
-        normal = pair_lam[:, :d] - pair_lam[:, d:]
-        constant = np.einsum("dn,ndk->nk", half, pair_lam[:, :d] + pair_lam[:, d:])
+        d = len(own)
+        plus, minus = pair_lam[:, :d], pair_lam[:, d:]
+        return self._rows(own, offsets, half, pair_lam, plus - minus, plus + minus, obstacle_lam)
+
+    def _rows(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray, pair_lam: np.ndarray,
+              normal: np.ndarray, magnitude: np.ndarray, obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
+        """:meth:`rows_at` given the pair normals lambda_+ - lambda_- and magnitudes lambda_+ +
+        lambda_- (n, d, K). Sums over the d axis are reductions of elementwise products, which
+        add the d terms in order as ``einsum`` does on these shapes, without its dispatch."""
+        constant = add_rows(half.T[:, :, None] * magnitude)
         if self.G:
+            d, K = own.shape
             o_normal = np.array([G.T @ lam for G, lam in zip(self.G, obstacle_lam, strict=True)]).reshape(-1, d, K)
             o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam, strict=True)]).reshape(-1, K)
-            o_value = np.einsum("odk,dk->ok", o_normal, own) - o_constant
+            o_value = add_rows(o_normal * own) - o_constant
         else:  # no obstacles: empty rows
             o_normal, o_constant, o_value = self._no_obstacle
         return Linearisation(
             pair_lam=pair_lam, pair_normal=normal, pair_constant=constant,
-            pair_value=np.einsum("ndk,ndk->nk", normal, offsets) - constant,
+            pair_value=add_rows(normal * offsets) - constant,
             obstacle_lam=obstacle_lam, obstacle_normal=o_normal, obstacle_constant=o_constant,
             obstacle_value=o_value,
         )
@@ -546,7 +563,7 @@ class LocalQPProblem:
         lower[self.rows["obstacles"]] = s.d_min + margin + lin.obstacle_constant
         pair = s.d_min + margin + lin.pair_constant
         if pinned is not None:
-            pair = pair + np.einsum("ndk,ndk->nk", lin.pair_normal, pinned)
+            pair = pair + add_rows(lin.pair_normal * pinned)
         lower[self.rows["pairs"]] = pair
         for p in range(self.shape.planes):
             lower[self.rows["planes"][p]] = np.ravel(params[f"Hb{p}"]) + margin
@@ -765,7 +782,7 @@ class LocalQP:
                                sp.csc_matrix((A_data, pb.A.indices, pb.A.indptr), shape=pb.A.shape), lower, upper)
             self._ready = True
         else:
-            same_A = self._A_data is not None and np.array_equal(A_data, self._A_data)
+            same_A = self._A_data is not None and bool((A_data == self._A_data).all())  # as np.array_equal
             self.backend.update(q, lower, upper, P_data, None if same_A else A_data)
         self._P_key, self._A_data = key, A_data
         return self.backend.solve(start, y)
@@ -968,7 +985,7 @@ targets, the pairs, the tally (rounds, QP iterations, solver time, exact answers
 def _row_change(old: np.ndarray, new: np.ndarray, near: np.ndarray) -> float:
     """Largest change between two certificate normals (rows, d, K) over the rows ``near`` (rows, K)
     their bound (0 when none is)."""
-    if not np.any(near):
+    if not near.any():
         return 0.0
     return max(0.0, float((np.abs(old - new) * near[:, None, :]).max()))
 
@@ -1179,10 +1196,10 @@ class SequentialLocalQP:
         ``own``: the plan's positions (d, K), ``offsets``: own - copies (n, d, K)."""
         o, s = self.options, self.settings
         bound = s.d_min + o.margin + o.active_band
-        pair = np.einsum("ndk,ndk->nk", old.pair_normal, offsets) - old.pair_constant
+        pair = add_rows(old.pair_normal * offsets) - old.pair_constant
         change = _row_change(old.pair_normal, new.pair_normal, pair <= bound)
         if len(old.obstacle_normal) and change <= o.certificate_tol:  # no obstacles: no rows to compare
-            obstacle = np.einsum("odk,dk->ok", old.obstacle_normal, own) - old.obstacle_constant
+            obstacle = add_rows(old.obstacle_normal * own) - old.obstacle_constant
             change = max(change, _row_change(old.obstacle_normal, new.obstacle_normal, obstacle <= bound))
         return change <= o.certificate_tol
 
