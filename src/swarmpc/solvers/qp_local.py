@@ -391,6 +391,10 @@ class Certifier:
         return pair, tuple(obstacles)
 
 
+FIXED_COSTS_KEPT = 256
+"""Goals whose fixed linear cost a :class:`LocalQPProblem` keeps (the oldest is dropped first)."""
+
+
 class LocalQPProblem:
     """The QP data of one local-problem shape: minimise 1/2 x'Px + q'x s.t. l <= Ax <= u.
 
@@ -409,6 +413,8 @@ class LocalQPProblem:
         self._copy_keys = ([f"Y{c}" for c in range(shape.copies)], [f"Z{c}" for c in range(shape.copies)])
         self._goal_weights = (-2.0 * s.Q, -2.0 * s.Qf)
         """The goal's weights in q (states before the last, the last)."""
+        self._fixed_costs: dict[bytes, np.ndarray] = {}
+        """q's goal and slack terms per goal (:meth:`_fixed_cost`): agents of one shape share it."""
         self._cost_pattern()
         self._constraint_pattern()
 
@@ -449,24 +455,35 @@ class LocalQPProblem:
 
     def linear_cost(self, params: dict[str, Any],
                     targets: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """q: goal tracking, consensus (gamma - rho_b z per block) and slack prices, written
-        block by block in the layout's order; ``targets``: :meth:`copy_targets` of ``params``
-        when the caller has them."""
-        s, lay, first = self.settings, self.layout, self.settings.first_constrained_step
-        goal = np.asarray(params["goal"], float)
+        """q: goal tracking, consensus (gamma - rho_b z per block) and slack prices, in the
+        layout's order; ``targets``: :meth:`copy_targets` of ``params`` when the caller has them."""
+        lay = self.layout
         rho, weight = float(params["rho"]), float(params["owner_weight"])
-        q = np.zeros(lay.size)
-        states = q[: (s.horizon + 1) * s.model.state_dim].reshape(s.horizon + 1, s.model.state_dim)  # a view
-        states[:-1] = self._goal_weights[0] @ goal
-        states[-1] = self._goal_weights[1] @ goal
-        consensus = np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)
-        states[first:, s.model.position_rows] += consensus.T
+        q = self._fixed_cost(np.asarray(params["goal"], float)).copy()
+        q[lay.own] += np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)
         if not self.shape.pinned and self.shape.copies:
             stacked = targets if targets is not None else self.copy_targets(params)
             assert stacked is not None  # there are copies
             Y, Z = stacked
-            q[lay.copy_start: lay.slack_start] = np.transpose(Y - rho * Z, (0, 2, 1)).ravel()
-        q[lay.slack_start:] = s.kappa
+            q[lay.C] = Y - rho * Z
+        return q
+
+    def _fixed_cost(self, goal: np.ndarray) -> np.ndarray:
+        """q without the consensus terms: the goal's (-2 Q goal per state, -2 Qf goal for the
+        last) and the slack prices kappa. Kept per goal (a few hundred at most), since the goal
+        seldom changes between calls."""
+        key = goal.tobytes()
+        q = self._fixed_costs.get(key)
+        if q is None:
+            s, lay = self.settings, self.layout
+            q = np.zeros(lay.size)
+            states = q[: (s.horizon + 1) * s.model.state_dim].reshape(s.horizon + 1, s.model.state_dim)  # a view
+            states[:-1] = self._goal_weights[0] @ goal
+            states[-1] = self._goal_weights[1] @ goal
+            q[lay.slack_start:] = s.kappa
+            if len(self._fixed_costs) >= FIXED_COSTS_KEPT:
+                self._fixed_costs.pop(next(iter(self._fixed_costs)))  # the oldest
+            self._fixed_costs[key] = q
         return q
 
     # --- constraints ------------------------------------------------------------------------
@@ -481,9 +498,22 @@ class LocalQPProblem:
         self._dynamics_rows(A)
         self._limit_rows(A)
         self._collision_rows(A)
-        self.A, self._A_values = A.freeze(self._row_counter.size)
-        self._A_pattern = A
+        self.A, values = A.freeze(self._row_counter.size)
         self.base_lower, self.base_upper = np.concatenate(self._lower), np.concatenate(self._upper)
+        self._A_base = A.data(values)
+        """A's data with the changing entries (certificate and plane normals) at zero."""
+        changing = [self._obstacle_slots, self._pair_slots, self._plane_slots]
+        changing += [self._copy_slots] if self._copy_slots is not None else []
+        places = np.concatenate([np.ravel(slots) for slots in changing])
+        if np.any(np.bincount(A.position, minlength=A.nnz)[A.position[places]] != 1):
+            raise AssertionError("a changing entry of A shares its place with another entry")
+        self._obstacle_places, self._pair_places, self._plane_places = (A.position[slots] for slots in changing[:3])
+        self._copy_places = A.position[self._copy_slots] if self._copy_slots is not None else None
+        self._row_slices = {name: slice(int(index.min()), int(index.max()) + 1) if index.size else slice(0, 0)
+                            for name, index in self.rows.items()}
+        """Each block's rows as a slice (every block is a consecutive range)."""
+        self._floor = self.settings.d_min + self.options.margin
+        """The separation rows' bound before their certificates' constants."""
 
     def _block(self, name: str, *size: int, lower: Any = 0.0, upper: Any = np.inf) -> np.ndarray:
         """Row indices of a new block of rows, with their constant bounds."""
@@ -541,15 +571,18 @@ class LocalQPProblem:
         A.add(self._block("obstacle_slack", *lay.obstacle_slack.shape), lay.obstacle_slack, 1.0)
 
     def constraint_values(self, lin: Linearisation, params: dict[str, Any]) -> np.ndarray:
-        """A's data (CSC order) with the certificates' normals and the planes' normals."""
-        values = self._A_values.copy()
-        values[self._obstacle_slots] = lin.obstacle_normal
-        values[self._pair_slots] = lin.pair_normal
-        if self._copy_slots is not None:
-            values[self._copy_slots] = -lin.pair_normal
+        """A's data (CSC order) with the certificates' normals and the planes' normals. Each of
+        these entries has a place of its own in the pattern (checked at set-up) and is written
+        there as 0.0 + value, the sum of its one slot (so a normal of -0.0 reads +0.0)."""
+        data = self._A_base.copy()
+        if self._obstacle_places.size:
+            data[self._obstacle_places] = lin.obstacle_normal + 0.0
+        data[self._pair_places] = lin.pair_normal + 0.0
+        if self._copy_places is not None:
+            data[self._copy_places] = 0.0 - lin.pair_normal  # = -n + 0.0, bit for bit
         for p in range(self.shape.planes):
-            values[self._plane_slots[p]] = np.asarray(params[f"Hn{p}"], float)
-        return self._A_pattern.data(values)
+            data[self._plane_places[p]] = np.asarray(params[f"Hn{p}"], float) + 0.0
+        return data
 
     def bounds(
         self, lin: Linearisation, params: dict[str, Any], pinned: np.ndarray | None = None,
@@ -557,16 +590,17 @@ class LocalQPProblem:
     ) -> tuple[np.ndarray, np.ndarray]:
         """(l, u): measured state, separation rows d_min + margin + constant (pinned copies move
         their n'c to the bound), plane offsets, and slack caps (a pinned slack's upper bound)."""
-        s, margin = self.settings, self.options.margin
+        rows = self._row_slices
         lower, upper = self.base_lower.copy(), self.base_upper.copy()
-        lower[self.rows["init"]] = upper[self.rows["init"]] = np.asarray(params["x0"], float)
-        lower[self.rows["obstacles"]] = s.d_min + margin + lin.obstacle_constant
-        pair = s.d_min + margin + lin.pair_constant
+        lower[rows["init"]] = upper[rows["init"]] = np.asarray(params["x0"], float)
+        if lin.obstacle_constant.size:
+            lower[rows["obstacles"]] = (self._floor + lin.obstacle_constant).ravel()
+        pair = self._floor + lin.pair_constant
         if pinned is not None:
             pair = pair + add_rows(lin.pair_normal * pinned)
-        lower[self.rows["pairs"]] = pair
+        lower[rows["pairs"]] = pair.ravel()
         for p in range(self.shape.planes):
-            lower[self.rows["planes"][p]] = np.ravel(params[f"Hb{p}"]) + margin
+            lower[self.rows["planes"][p]] = np.ravel(params[f"Hb{p}"]) + self.options.margin
         for slot, cap in (slack_caps or {}).items():
             upper[self.rows["pair_slack"][slot]] = cap
         return lower, upper
@@ -990,6 +1024,10 @@ def _row_change(old: np.ndarray, new: np.ndarray, near: np.ndarray) -> float:
     return max(0.0, float((np.abs(old - new) * near[:, None, :]).max()))
 
 
+CARRIED_KEPT = 256
+"""Answers whose certificate rows a :class:`SequentialLocalQP` keeps (the oldest is dropped first)."""
+
+
 class SequentialLocalQP:
     """One shape's local step: the certificate loop around :class:`LocalQP` (module docstring),
     then the exact rebuild and check of the plan. Returns :class:`NLPSolution` with the blocks
@@ -1019,6 +1057,22 @@ class SequentialLocalQP:
             len(g) for _, g in s.obstacles) * s.num_constrained
         """Length of a solution's ``x_vec``: the QP's primal vector, then the certificates it was
         linearised with last (as the NLP's vector carries its L blocks)."""
+        self._carried: dict[bytes, Linearisation] = {}
+        """The rows of the certificates that recent answers' vectors carry, by :meth:`_carry_key`:
+        the next call of an agent starts from its last answer, whose rows :meth:`_start` would
+        otherwise derive again from the same numbers."""
+
+    def _carry_key(self, vector: np.ndarray, delta: np.ndarray, pinned: np.ndarray | None) -> bytes:
+        """What the rows of a solution vector's certificates depend on: the vector, the pairs'
+        Delta and the pinned copies (the shape fixes every length)."""
+        pinned_bytes = b"" if pinned is None else np.ascontiguousarray(pinned, float).tobytes()
+        return vector.tobytes() + np.ascontiguousarray(delta, float).tobytes() + pinned_bytes
+
+    def _carry(self, vector: np.ndarray, delta: np.ndarray, pinned: np.ndarray | None, lin: Linearisation) -> None:
+        """Keep ``lin``, the rows of the certificates ``vector`` carries, for :meth:`_start`."""
+        if len(self._carried) >= CARRIED_KEPT:
+            self._carried.pop(next(iter(self._carried)))  # the oldest
+        self._carried[self._carry_key(vector, delta, pinned)] = lin
 
     def _start(
         self, guess: dict[str, np.ndarray] | np.ndarray, pairs: Pairs, pinned: np.ndarray | None,
@@ -1029,6 +1083,10 @@ class SequentialLocalQP:
             size = self.problem.layout.size
             x = guess[:size].copy()
             pair, obstacles = self.certify.unpack(guess[size:], self.shape.copies)
+            rows = self._carried.get(self._carry_key(guess, pairs[0], pinned))
+            if rows is not None:  # the certificates as the vector holds them, their rows as derived before
+                return x, Linearisation(pair, rows.pair_normal, rows.pair_constant, rows.pair_value, obstacles,
+                                        rows.obstacle_normal, rows.obstacle_constant, rows.obstacle_value)
             own, copies = self.positions(x, pinned)
             return x, self.certify.rows_at(own, own[None] - copies, pairs[0], pair, obstacles)
         x = self.start_point(guess)
@@ -1259,8 +1317,10 @@ class SequentialLocalQP:
         if violation > 0.0:
             status = f"unsafe_{violation:.1e}"
         stacked = None if targets is None else (np.ascontiguousarray(copies, float), *targets)
+        vector = np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]])
+        self._carry(vector, pairs[0], pinned, lin)  # lin: the rows of the vector's certificates at x
         return NLPSolution(
-            x=blocks, x_vec=np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]]),
+            x=blocks, x_vec=vector,
             lam_x=np.zeros(0), lam_g=y, cost=stacked_objective(blocks, params, s, stacked),
             success=violation <= 0.0, status=status,
             iterations=rounds, solve_time=wall,
