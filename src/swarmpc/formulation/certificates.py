@@ -128,9 +128,10 @@ def box_normals(q: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray
     outside = np.maximum(excess, 0.0)
     gap = np.sqrt((outside * outside).sum(0))  # the d terms in order, as einsum adds them
     is_out = gap > 0
-    direction = np.copysign(outside, q) / np.where(is_out, gap, 1.0)  # |q| > half > 0 wherever it counts
+    every = bool(is_out.all())  # all outside: the common case, dividing by gap as it stands
+    direction = np.copysign(outside, q) / (gap if every else np.where(is_out, gap, 1.0))  # |q| > half > 0 there
     value = gap
-    if not is_out.all():  # offsets inside (or on) the box: the shallowest exit axis
+    if not every:  # offsets inside (or on) the box: the shallowest exit axis
         inner = np.nonzero(~is_out)[0]
         axis = np.argmax(excess[:, inner], axis=0)
         direction[:, inner] = 0.0

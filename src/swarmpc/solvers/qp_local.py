@@ -376,6 +376,18 @@ class Certifier:
             obstacle_value=o_value,
         )
 
+    def values_at(self, own: np.ndarray, offsets: np.ndarray, lin: Linearisation) -> Linearisation:
+        """``lin``'s rows at other positions: :meth:`rows_at` of its certificates, whose normals
+        and constants depend on the certificates and the pairs' Delta only and are taken as
+        they are."""
+        o_value = add_rows(lin.obstacle_normal * own) - lin.obstacle_constant if self.G else lin.obstacle_value
+        return Linearisation(
+            pair_lam=lin.pair_lam, pair_normal=lin.pair_normal, pair_constant=lin.pair_constant,
+            pair_value=add_rows(lin.pair_normal * offsets) - lin.pair_constant,
+            obstacle_lam=lin.obstacle_lam, obstacle_normal=lin.obstacle_normal,
+            obstacle_constant=lin.obstacle_constant, obstacle_value=o_value,
+        )
+
     def pack(self, lin: Linearisation) -> np.ndarray:
         """The certificates as one vector (to travel with a solution's primal vector)."""
         return np.concatenate([lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]])
@@ -1307,7 +1319,7 @@ class SequentialLocalQP:
         own = X[s.model.position_rows, s.first_constrained_step:]
         copies = pinned if pinned is not None else x.take(lay.C)
         offsets = own[None] - copies
-        final = self.certify.rows_at(own, offsets, pairs[0], lin.pair_lam, lin.obstacle_lam)
+        final = self.certify.values_at(own, offsets, lin)
         violation = self.violation(X, final, params)
         if violation > 0.0:
             final = self.certify.best(own, offsets, *pairs)
