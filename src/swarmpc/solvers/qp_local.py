@@ -319,21 +319,16 @@ class Certifier:
         d, K = own.shape
         return self.best(own, own[None] - copies, copy_deltas(delta, len(copies), d))
 
-    def best(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray,
-             columns: np.ndarray | None = None) -> Linearisation:
-        """:meth:`__call__` from the offsets own - copies (n, d, K) and the pairs' Delta (d, n);
-        ``columns``: Delta repeated per step (d, n K) when the caller has it (it holds for every
-        round of a call)."""
+    def best(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray) -> Linearisation:
+        """:meth:`__call__` from the offsets own - copies (n, d, K) and the pairs' Delta (d, n)."""
         d, K = own.shape
         n = len(offsets)
         lam = np.empty((n, 2 * d, K))
         certs = tuple(certifier(own).lam for certifier in self.obstacles)
         if not n:
             return self.rows_at(own, offsets, half, lam, certs)
-        # every copy in one call, each column against its pair's box
-        columns = np.repeat(half, K, axis=1) if columns is None else columns
-        direction, _ = box_normals(offsets.transpose(1, 0, 2).reshape(d, n * K), columns)
-        direction = direction.reshape(d, n, K).transpose(1, 0, 2)
+        # every copy in one call, each against its pair's box
+        direction, _ = box_normals(offsets, half.T[:, :, None])
         np.maximum(direction, 0.0, out=lam[:, :d])  # lambda_+, then lambda_-
         np.maximum(-direction, 0.0, out=lam[:, d:])
         # lambda_+ - lambda_- is the direction and lambda_+ + lambda_- its magnitude, bit for
@@ -1020,12 +1015,9 @@ class LoopRecord:
     """Rounds whose QP answer was exact on its active set (OSQP: polished)."""
 
 
-Pairs = tuple[np.ndarray, np.ndarray | None]
-"""A call's pairs: their Delta (d, n), and the same repeated per constrained step (d, n K)."""
-
-Call = tuple[dict[str, Any], tuple[np.ndarray, np.ndarray] | None, Pairs, list[Any], int]
+Call = tuple[dict[str, Any], tuple[np.ndarray, np.ndarray] | None, np.ndarray, list[Any], int]
 """What every certificate loop of a call shares: parameters, the copies' stacked multipliers and
-targets, the pairs, the tally (rounds, QP iterations, solver time, exact answers), the round cap."""
+targets, the pairs' Delta (d, n), the tally (rounds, QP iterations, solver time, exact answers), the round cap."""
 
 
 def _row_change(old: np.ndarray, new: np.ndarray, near: np.ndarray) -> float:
@@ -1087,7 +1079,7 @@ class SequentialLocalQP:
         self._carried[self._carry_key(vector, delta, pinned)] = lin
 
     def _start(
-        self, guess: dict[str, np.ndarray] | np.ndarray, pairs: Pairs, pinned: np.ndarray | None,
+        self, guess: dict[str, np.ndarray] | np.ndarray, delta: np.ndarray, pinned: np.ndarray | None,
     ) -> tuple[np.ndarray, Linearisation]:
         """The QP's start and first certificates: those a solution vector carries, else the best
         certificates of the guessed blocks."""
@@ -1095,22 +1087,22 @@ class SequentialLocalQP:
             size = self.problem.layout.size
             x = guess[:size].copy()
             pair, obstacles = self.certify.unpack(guess[size:], self.shape.copies)
-            rows = self._carried.get(self._carry_key(guess, pairs[0], pinned))
+            rows = self._carried.get(self._carry_key(guess, delta, pinned))
             if rows is not None:  # the certificates as the vector holds them, their rows as derived before
                 return x, Linearisation(pair, rows.pair_normal, rows.pair_constant, rows.pair_value, obstacles,
                                         rows.obstacle_normal, rows.obstacle_constant, rows.obstacle_value)
             own, copies = self.positions(x, pinned)
-            return x, self.certify.rows_at(own, own[None] - copies, pairs[0], pair, obstacles)
+            return x, self.certify.rows_at(own, own[None] - copies, delta, pair, obstacles)
         x = self.start_point(guess)
-        return x, self._certified(x, pinned, pairs)[0]
+        return x, self._certified(x, pinned, delta)[0]
 
     def _certified(self, x: np.ndarray, pinned: np.ndarray | None,
-                   pairs: Pairs) -> tuple[Linearisation, np.ndarray, np.ndarray]:
+                   delta: np.ndarray) -> tuple[Linearisation, np.ndarray, np.ndarray]:
         """(best certificates, own positions (d, K), offsets own - copies (n, d, K)) of a primal
-        vector; ``pairs``: (the pairs' Delta (d, n), the same repeated per step (d, n K))."""
+        vector; ``delta``: the pairs' Delta (d, n)."""
         own, copies = self.positions(x, pinned)
         offsets = own[None] - copies
-        return self.certify.best(own, offsets, *pairs), own, offsets
+        return self.certify.best(own, offsets, delta), own, offsets
 
     def start_point(self, guess: dict[str, np.ndarray]) -> np.ndarray:
         """A primal vector in this QP's layout from named blocks (X, U, C{c})."""
@@ -1182,12 +1174,11 @@ class SequentialLocalQP:
         the very problem whose restarts failed last (a repair retried from another start)."""
         began = time.perf_counter()
         delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
-        pairs = (delta, np.repeat(delta, self.settings.num_constrained, axis=1) if self.shape.copies else None)
         targets = self.problem.copy_targets(params)
-        x, lin = self._start(guess, pairs, pinned)
+        x, lin = self._start(guess, delta, pinned)
         tally: list[Any] = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
         cap = self.options.max_rounds if rounds is None else min(rounds, self.options.max_rounds)
-        call = (params, targets, pairs, tally, cap)
+        call = (params, targets, delta, tally, cap)
         answer, x, lin, converged = self._loop(call, x, lin, y, (pinned, slack_caps))
         proven = (not answer.solved and self.proof is not None and pinned is not None
                   and self.proof.infeasible(params["x0"], pinned, delta))
@@ -1196,7 +1187,7 @@ class SequentialLocalQP:
         for plan in self._fallback_plans(params) if restart and key != self._failed_restarts else []:
             start = x.copy()
             start[self.problem.layout.X] = plan
-            lin = self._certified(start, pinned, pairs)[0]
+            lin = self._certified(start, pinned, delta)[0]
             answer, x, lin, converged = self._loop(call, start, lin, None, (pinned, slack_caps))
             if answer.solved:
                 break
@@ -1207,7 +1198,7 @@ class SequentialLocalQP:
         self.last_record = LoopRecord(tally[0], tally[1], tally[2], wall, converged, tally[3])
         if not answer.solved:
             return self._failed(x, status, wall, tally[1])
-        return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged, pairs, targets)
+        return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged, delta, targets)
 
     def _problem_key(
         self, params: dict[str, Any], pinned: np.ndarray | None, slack_caps: dict[int, float] | None,
@@ -1228,7 +1219,7 @@ class SequentialLocalQP:
     ) -> tuple[QPAnswer, np.ndarray, Linearisation, bool]:
         """The certificate loop from (x, lin), ``call``'s rounds at most, with ``fixed`` = (pinned
         copies, slack caps): (last answer, plan, its best certificates, converged)."""
-        params, targets, pairs, tally, rounds = call
+        params, targets, delta, tally, rounds = call
         pinned, slack_caps = fixed
         converged = False
         q = self.problem.linear_cost(params, targets)
@@ -1240,7 +1231,7 @@ class SequentialLocalQP:
             tally[3] += answer.exact
             if not answer.solved:
                 break
-            new, own, offsets = self._certified(answer.x, pinned, pairs)
+            new, own, offsets = self._certified(answer.x, pinned, delta)
             moved = float(np.abs(answer.x - x).max()) if x.size else 0.0
             x, y = answer.x, answer.y
             converged = moved <= self.options.plan_tol or self._settled(lin, new, own, offsets)
@@ -1309,7 +1300,8 @@ class SequentialLocalQP:
 
     def _result(
         self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray, pinned: np.ndarray | None,
-        wall: float, rounds: int, converged: bool, pairs: Pairs, targets: tuple[np.ndarray, np.ndarray] | None,
+        wall: float, rounds: int, converged: bool, delta: np.ndarray,
+        targets: tuple[np.ndarray, np.ndarray] | None,
     ) -> NLPSolution:
         """The rebuilt plan, certified by the last round's certificates (their values at the
         rebuilt positions are lower bounds on the distances, so a plan they clear is clear),
@@ -1322,7 +1314,7 @@ class SequentialLocalQP:
         final = self.certify.values_at(own, offsets, lin)
         violation = self.violation(X, final, params)
         if violation > 0.0:
-            final = self.certify.best(own, offsets, *pairs)
+            final = self.certify.best(own, offsets, delta)
             violation = self.violation(X, final, params)
         blocks = self._blocks(X, U, copies, final)
         status = "solved" if converged else "max_rounds"
@@ -1330,7 +1322,7 @@ class SequentialLocalQP:
             status = f"unsafe_{violation:.1e}"
         stacked = None if targets is None else (np.ascontiguousarray(copies, float), *targets)
         vector = np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]])
-        self._carry(vector, pairs[0], pinned, lin)  # lin: the rows of the vector's certificates at x
+        self._carry(vector, delta, pinned, lin)  # lin: the rows of the vector's certificates at x
         return NLPSolution(
             x=blocks, x_vec=vector,
             lam_x=np.zeros(0), lam_g=y, cost=stacked_objective(blocks, params, s, stacked),
