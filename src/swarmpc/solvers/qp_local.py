@@ -464,10 +464,12 @@ class LocalQPProblem:
                     targets: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """q: goal tracking, consensus (gamma - rho_b z per block) and slack prices, in the
         layout's order; ``targets``: :meth:`copy_targets` of ``params`` when the caller has them."""
-        lay = self.layout
+        s, lay = self.settings, self.layout
         rho, weight = float(params["rho"]), float(params["owner_weight"])
         q = self._fixed_cost(np.asarray(params["goal"], float)).copy()
-        q[lay.own] += np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)
+        states = q[: (s.horizon + 1) * s.model.state_dim].reshape(s.horizon + 1, s.model.state_dim)  # a view
+        consensus = np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)
+        states[s.first_constrained_step:, s.model.position_rows] += consensus.T
         if not self.shape.pinned and self.shape.copies:
             stacked = targets if targets is not None else self.copy_targets(params)
             assert stacked is not None  # there are copies
@@ -1352,11 +1354,11 @@ class SequentialLocalQP:
         planes, workspace and speed by direct evaluation. Inputs are within their box and the
         states follow the dynamics by construction (:meth:`rebuild`)."""
         s, first = self.settings, self.settings.first_constrained_step
-        gaps = [0.0]
+        gaps = [0.0]  # d_min - min(value) is max(d_min - value), bit for bit (rounding is monotone)
         if self.shape.pair_collision == "hard" and lin.pair_value.size:
-            gaps.append(float((s.d_min - lin.pair_value).max()))
+            gaps.append(s.d_min - float(lin.pair_value.min()))
         if s.collision == "hard" and lin.obstacle_value.size:
-            gaps.append(float((s.d_min - lin.obstacle_value).max()))
+            gaps.append(s.d_min - float(lin.obstacle_value.min()))
         own = X[s.model.position_rows, first:]
         for p in range(self.shape.planes):
             gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
