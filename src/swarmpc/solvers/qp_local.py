@@ -90,6 +90,7 @@ __all__ = [
     "OSQPBackend",
     "PIQPBackend",
     "PROVEN_INFEASIBLE",
+    "PlanCheck",
     "QPAnswer",
     "QPBackend",
     "QPLocalLadder",
@@ -97,6 +98,7 @@ __all__ = [
     "LocalQPProblem",
     "SeparationProof",
     "SequentialLocalQP",
+    "SolutionLayout",
     "box_covered",
     "copy_deltas",
     "speed_polytope",
@@ -892,7 +894,7 @@ def stacked_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: 
 
 
 VERIFY_TOL = 1e-7
-"""Largest violation of a constraint a verified plan may show (:meth:`SequentialLocalQP.verified`;
+"""Largest violation of a constraint a verified plan may show (:meth:`PlanCheck.verified`;
 IPOPT's constraint tolerance in the reference check)."""
 
 PROVEN_INFEASIBLE = "qp_proven_infeasible"
@@ -1030,14 +1032,187 @@ def _row_change(old: np.ndarray, new: np.ndarray, near: np.ndarray) -> float:
     return max(0.0, float((np.abs(old - new) * near[:, None, :]).max()))
 
 
+class SolutionLayout:
+    """One shape's layouts and the conversions between them: the NLP's named blocks (X, U,
+    C{c}, L{c}, A{c}, L_o{o}, A_o{o}), the QP's primal vector (:class:`VariableLayout`) and the
+    solution vector (the primal vector, then the certificates it was linearised with last, as
+    the NLP's vector carries its L blocks)."""
+
+    def __init__(self, s: OCPSettings, shape: LocalShape, variables: VariableLayout, certify: Certifier) -> None:
+        self.settings, self.shape, self.variables, self.certify = s, shape, variables, certify
+        self.size = variables.size + shape.copies * 2 * s.dim * s.num_constrained + sum(
+            len(g) for _, g in s.obstacles) * s.num_constrained
+        """Length of a solution vector."""
+        self._block_keys = [(f"C{c}", f"L{c}", f"A{c}") for c in range(shape.copies)]
+
+    def positions(self, x: np.ndarray, pinned: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Own constrained positions (d, K) and the copies (n, d, K) of a primal vector."""
+        lay = self.variables
+        return x.take(lay.own), (pinned if pinned is not None else x.take(lay.C))
+
+    def start_point(self, guess: dict[str, np.ndarray]) -> np.ndarray:
+        """A primal vector in this QP's layout from named blocks (X, U, C{c})."""
+        lay, x = self.variables, np.zeros(self.variables.size)
+        x[lay.X] = np.asarray(guess["X"], float)
+        if "U" in guess:
+            x[lay.U] = np.asarray(guess["U"], float)
+        if not self.shape.pinned:
+            for c in range(self.shape.copies):
+                x[lay.C[c]] = np.asarray(guess[f"C{c}"], float)
+        return x
+
+    def vector(self, x: np.ndarray, lin: Linearisation) -> np.ndarray:
+        """The solution vector of primal ``x`` and the certificates of ``lin``."""
+        return np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]])
+
+    def unpack(self, vector: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """(primal vector, pair certificates (n, 2d, K), obstacle certificates) of a solution
+        vector, all views into it."""
+        size = self.variables.size
+        return (vector[:size], *self.certify.unpack(vector[size:], self.shape.copies))
+
+    def vector_of(self, blocks: dict[str, np.ndarray], delta: np.ndarray) -> np.ndarray:
+        """A solution vector of this layout from the named blocks of another solver's answer to
+        this shape's problem (the IPOPT fallback): plan, copies (``C{c}``, present also where
+        pinned) and slacks taken as they are, certificates the best ones of its positions, so
+        that the next QP solve starts from that answer."""
+        lay, s = self.variables, self.settings
+        x = self.start_point(blocks)
+        for c, row in enumerate(lay.pair_slack):
+            x[row] = np.ravel(blocks.get(f"A{c}", 0.0))
+        for o, row in enumerate(lay.obstacle_slack):
+            x[row] = np.ravel(blocks.get(f"A_o{o}", 0.0))
+        copies = np.array([np.asarray(blocks[f"C{c}"], float) for c in range(self.shape.copies)])
+        copies = copies.reshape(self.shape.copies, s.dim, s.num_constrained)
+        return np.concatenate([x, self.certify.pack(self.certify(x[lay.own], copies, delta))])
+
+    def blocks_of(self, vector: np.ndarray, params: dict[str, Any]) -> dict[str, np.ndarray]:
+        """The named blocks of :func:`swarmpc.formulation.ocp.build_local`'s problem of a
+        solution vector of this layout: the start of the IPOPT step when this one failed.
+        Pinned copies are taken from ``params`` (Z{c})."""
+        lay = self.variables
+        x, pair, obstacles = self.unpack(vector)
+        blocks = {"X": x[lay.X], "U": x[lay.U]}
+        for c in range(self.shape.copies):
+            blocks[f"C{c}"] = np.asarray(params[f"Z{c}"], float) if self.shape.pinned else x[lay.C[c]]
+            blocks[f"L{c}"] = pair[c]
+            if len(lay.pair_slack):
+                blocks[f"A{c}"] = x[lay.pair_slack[c]][None, :]
+        for o, lam in enumerate(obstacles):
+            blocks[f"L_o{o}"] = lam
+            if len(lay.obstacle_slack):
+                blocks[f"A_o{o}"] = x[lay.obstacle_slack[o]][None, :]
+        return blocks
+
+    def blocks(self, X: np.ndarray, U: np.ndarray, copies: np.ndarray, lin: Linearisation) -> dict[str, np.ndarray]:
+        """The named blocks of a plan (``X`` (s, N+1), ``U`` (m, N)), its copies (n, d, K) and
+        certificates ``lin``, with the least slacks those certificates need."""
+        s = self.settings
+        blocks: dict[str, np.ndarray] = {"X": X, "U": U}
+        soft = self.shape.pair_collision == "soft"
+        for c, (C, L, A) in enumerate(self._block_keys):
+            blocks[C] = copies[c]
+            blocks[L] = lin.pair_lam[c]
+            if soft:
+                blocks[A] = np.maximum(s.d_min - lin.pair_value[c], 0.0)[None, :]
+        for o, lam in enumerate(lin.obstacle_lam):
+            blocks[f"L_o{o}"] = lam
+            if s.collision == "soft":
+                blocks[f"A_o{o}"] = np.maximum(s.d_min - lin.obstacle_value[o], 0.0)[None, :]
+        return blocks
+
+
+class PlanCheck:
+    """The exact rebuild of a QP answer (inputs clipped to their box, states rolled out through
+    the discrete dynamics) and the checks of a plan against one shape's hard claims."""
+
+    def __init__(self, s: OCPSettings, shape: LocalShape, layout: SolutionLayout) -> None:
+        self.settings, self.shape, self.layout, self.certify = s, shape, layout, layout.certify
+        self.transition, self.response = rollout_matrices(s)
+        lower, upper = s.model.input_bounds(s.accel, s.speed)
+        self._input_box = (lower[:, None], upper[:, None])
+        """The input box as columns (m, 1) (:meth:`rebuild` clips to it on every call)."""
+        self._workspace = (s.lower[:, None], s.upper[:, None]) if s.lower is not None and s.upper is not None else None
+        """The workspace box as columns (d, 1) (:meth:`violation` checks it on every call)."""
+
+    def rebuild(self, state: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inputs (m, N) clipped to their box and the states (s, N+1) they drive from ``state``:
+        the applied plan meets the dynamics and the input limits exactly."""
+        s = self.settings
+        U = np.clip(inputs, *self._input_box) if s.accel is not None else inputs.copy()
+        X = (self.transition @ state + self.response @ U.ravel(order="F")).reshape(s.horizon + 1, s.model.state_dim).T
+        return X, U
+
+    def certified(
+        self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, pinned: np.ndarray | None,
+        delta: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Linearisation, float]:
+        """(X, U, copies, certificates, violation) of the rebuilt plan of primal ``x``: certified
+        by ``lin``'s certificates (their values at the rebuilt positions are lower bounds on the
+        distances, so a plan they clear is clear), or by the best certificates of the rebuilt
+        plan if those do not clear it; ``delta``: the pairs' Delta (d, n)."""
+        s, lay = self.settings, self.layout.variables
+        X, U = self.rebuild(np.asarray(params["x0"], float), x.take(lay.U))
+        own = X[s.model.position_rows, s.first_constrained_step:]
+        copies = pinned if pinned is not None else x.take(lay.C)
+        offsets = own[None] - copies
+        final = self.certify.values_at(own, offsets, lin)
+        violation = self.violation(X, final, params)
+        if violation > 0.0:
+            final = self.certify.best(own, offsets, delta)
+            violation = self.violation(X, final, params)
+        return X, U, copies, final, violation
+
+    def violation(self, X: np.ndarray, lin: Linearisation, params: dict[str, Any]) -> float:
+        """Largest shortfall of a plan against the hard claims (0 when all hold): separations
+        (>= d_min) by the values of dual-feasible certificates (lower bounds on the distances),
+        planes, workspace and speed by direct evaluation. Inputs are within their box and the
+        states follow the dynamics by construction (:meth:`rebuild`)."""
+        s, first = self.settings, self.settings.first_constrained_step
+        gaps = [0.0]  # d_min - min(value) is max(d_min - value), bit for bit (rounding is monotone)
+        if self.shape.pair_collision == "hard" and lin.pair_value.size:
+            gaps.append(s.d_min - float(lin.pair_value.min()))
+        if s.collision == "hard" and lin.obstacle_value.size:
+            gaps.append(s.d_min - float(lin.obstacle_value.min()))
+        own = X[s.model.position_rows, first:]
+        for p in range(self.shape.planes):
+            gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
+        if self._workspace is not None:
+            gaps += [float((self._workspace[0] - own).max()), float((own - self._workspace[1]).max())]
+        if s.speed is not None:
+            gaps.append(float(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1).max()) - s.speed)
+        return max(gaps)
+
+    def verified(self, params: dict[str, Any], X: np.ndarray, U: np.ndarray,
+                 pinned: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+        """(named blocks, solution vector) of the plan (``X`` (s, N+1), ``U`` (m, N)) as an answer
+        of this shape against the ``pinned`` copies (n, d, K) when it meets the problem's
+        constraints to :data:`VERIFY_TOL`: it flies the dynamics from the measured state within
+        the input box, every pair keeps d_min (slack or not) and every hard claim of
+        :meth:`violation` holds, by the best certificates of its positions; None otherwise. A
+        repair keeps its agent's current plan this way when its solves fail."""
+        s = self.settings
+        X, U = np.asarray(X, float), np.asarray(U, float)
+        rebuilt, clipped = self.rebuild(np.asarray(params["x0"], float), U)
+        if np.max(np.abs(clipped - U), initial=0.0) > VERIFY_TOL or np.max(np.abs(rebuilt - X)) > VERIFY_TOL:
+            return None
+        own = X[s.model.position_rows, s.first_constrained_step:]
+        lin = self.certify(own, pinned, copy_deltas(params["delta"], self.shape.copies, s.dim))
+        if np.max(s.d_min - lin.pair_value, initial=0.0) > VERIFY_TOL or self.violation(X, lin, params) > VERIFY_TOL:
+            return None
+        blocks = self.layout.blocks(X, U, pinned, lin)
+        return blocks, self.layout.vector_of(blocks, params["delta"])
+
+
 CARRIED_KEPT = 256
 """Answers whose certificate rows a :class:`SequentialLocalQP` keeps (the oldest is dropped first)."""
 
 
 class SequentialLocalQP:
     """One shape's local step: the certificate loop around :class:`LocalQP` (module docstring),
-    then the exact rebuild and check of the plan. Returns :class:`NLPSolution` with the blocks
-    the IPOPT local step returns (X, U, C{c}, L{c}, A{c}, L_o{n}, A_o{n})."""
+    then the exact rebuild and check of the plan (:class:`PlanCheck`). Returns
+    :class:`NLPSolution` with the blocks the IPOPT local step returns (X, U, C{c}, L{c}, A{c},
+    L_o{n}, A_o{n}), laid out by :class:`SolutionLayout`."""
 
     def __init__(self, s: OCPSettings, shape: LocalShape, options: QPLocalOptions,
                  backend: QPBackend | None = None) -> None:
@@ -1045,29 +1220,33 @@ class SequentialLocalQP:
         self.problem = LocalQPProblem(s, shape, options)
         self.qp = LocalQP(self.problem, backend or qp_backend(options, shape.pinned))
         self.certify = Certifier(s)
-        self.transition, self.response = rollout_matrices(s)
-        lower, upper = s.model.input_bounds(s.accel, s.speed)
-        self._input_box = (lower[:, None], upper[:, None])
-        """The input box as columns (m, 1) (:meth:`rebuild` clips to it on every call)."""
-        self._block_keys = [(f"C{c}", f"L{c}", f"A{c}") for c in range(shape.copies)]
-        self._workspace = (s.lower[:, None], s.upper[:, None]) if s.lower is not None and s.upper is not None else None
-        """The workspace box as columns (d, 1) (:meth:`violation` checks it on every call)."""
-        self.proof = SeparationProof(s, self.transition, self.response, options.margin) if (
+        self.layout = SolutionLayout(s, shape, self.problem.layout, self.certify)
+        self.check = PlanCheck(s, shape, self.layout)
+        self.proof = SeparationProof(s, self.check.transition, self.check.response, options.margin) if (
             shape.pinned and shape.pair_collision == "hard") else None
         """Decides failed repair calls that no solver can answer (:data:`PROVEN_INFEASIBLE`)."""
         self.last_record: LoopRecord | None = None
         self._failed_restarts: bytes | None = None
         """The problem (:meth:`_problem_key`) whose restarts failed last: a retry of the same
         problem from another start (a repair retried from the agent's own plan) skips them."""
-        self.vector_size = self.problem.layout.size + shape.copies * 2 * s.dim * s.num_constrained + sum(
-            len(g) for _, g in s.obstacles) * s.num_constrained
-        """Length of a solution's ``x_vec``: the QP's primal vector, then the certificates it was
-        linearised with last (as the NLP's vector carries its L blocks)."""
+        self.vector_size = self.layout.size
+        """Length of a solution's ``x_vec`` (:class:`SolutionLayout`)."""
         self._carried: dict[bytes, Linearisation] = {}
         """The rows of the certificates that recent answers' vectors carry, by :meth:`_carry_key`:
         the next call of an agent starts from its last answer, whose rows :meth:`_start` would
         otherwise derive again from the same numbers."""
 
+    # the layout's and the check's entry points that callers of the step use
+    def positions(self, x: np.ndarray, pinned: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`SolutionLayout.positions`."""
+        return self.layout.positions(x, pinned)
+
+    def verified(self, params: dict[str, Any], X: np.ndarray, U: np.ndarray,
+                 pinned: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+        """:meth:`PlanCheck.verified`."""
+        return self.check.verified(params, X, U, pinned)
+
+    # the certificate loop
     def _carry_key(self, vector: np.ndarray, delta: np.ndarray, pinned: np.ndarray | None) -> bytes:
         """What the rows of a solution vector's certificates depend on: the vector, the pairs'
         Delta and the pinned copies (the shape fixes every length)."""
@@ -1086,75 +1265,24 @@ class SequentialLocalQP:
         """The QP's start and first certificates: those a solution vector carries, else the best
         certificates of the guessed blocks."""
         if isinstance(guess, np.ndarray):
-            size = self.problem.layout.size
-            x = guess[:size].copy()
-            pair, obstacles = self.certify.unpack(guess[size:], self.shape.copies)
+            primal, pair, obstacles = self.layout.unpack(guess)
+            x = primal.copy()
             rows = self._carried.get(self._carry_key(guess, delta, pinned))
             if rows is not None:  # the certificates as the vector holds them, their rows as derived before
                 return x, Linearisation(pair, rows.pair_normal, rows.pair_constant, rows.pair_value, obstacles,
                                         rows.obstacle_normal, rows.obstacle_constant, rows.obstacle_value)
-            own, copies = self.positions(x, pinned)
+            own, copies = self.layout.positions(x, pinned)
             return x, self.certify.rows_at(own, own[None] - copies, delta, pair, obstacles)
-        x = self.start_point(guess)
+        x = self.layout.start_point(guess)
         return x, self._certified(x, pinned, delta)[0]
 
     def _certified(self, x: np.ndarray, pinned: np.ndarray | None,
                    delta: np.ndarray) -> tuple[Linearisation, np.ndarray, np.ndarray]:
         """(best certificates, own positions (d, K), offsets own - copies (n, d, K)) of a primal
         vector; ``delta``: the pairs' Delta (d, n)."""
-        own, copies = self.positions(x, pinned)
+        own, copies = self.layout.positions(x, pinned)
         offsets = own[None] - copies
         return self.certify.best(own, offsets, delta), own, offsets
-
-    def start_point(self, guess: dict[str, np.ndarray]) -> np.ndarray:
-        """A primal vector in this QP's layout from named blocks (X, U, C{c})."""
-        lay, x = self.problem.layout, np.zeros(self.problem.layout.size)
-        x[lay.X] = np.asarray(guess["X"], float)
-        if "U" in guess:
-            x[lay.U] = np.asarray(guess["U"], float)
-        if not self.shape.pinned:
-            for c in range(self.shape.copies):
-                x[lay.C[c]] = np.asarray(guess[f"C{c}"], float)
-        return x
-
-    def vector_of(self, blocks: dict[str, np.ndarray], delta: np.ndarray) -> np.ndarray:
-        """A solution vector of this layout (primal vector, then certificates) from the named
-        blocks of another solver's answer to this shape's problem (the IPOPT fallback): plan,
-        copies (``C{c}``, present also where pinned) and slacks taken as they are, certificates
-        the best ones of its positions, so that the next QP solve starts from that answer."""
-        lay, s = self.problem.layout, self.settings
-        x = self.start_point(blocks)
-        for c, row in enumerate(lay.pair_slack):
-            x[row] = np.ravel(blocks.get(f"A{c}", 0.0))
-        for o, row in enumerate(lay.obstacle_slack):
-            x[row] = np.ravel(blocks.get(f"A_o{o}", 0.0))
-        copies = np.array([np.asarray(blocks[f"C{c}"], float) for c in range(self.shape.copies)])
-        copies = copies.reshape(self.shape.copies, s.dim, s.num_constrained)
-        return np.concatenate([x, self.certify.pack(self.certify(x[lay.own], copies, delta))])
-
-    def blocks_of(self, vector: np.ndarray, params: dict[str, Any]) -> dict[str, np.ndarray]:
-        """The named blocks of :func:`swarmpc.formulation.ocp.build_local`'s problem (X, U,
-        C{c}, L{c}, A{c}, L_o{o}, A_o{o}) of a solution vector of this layout: the start of
-        the IPOPT step when this one failed. Pinned copies are taken from ``params`` (Z{c})."""
-        lay, n = self.problem.layout, self.shape.copies
-        x = vector[: lay.size]
-        pair, obstacles = self.certify.unpack(vector[lay.size:], n)
-        blocks = {"X": x[lay.X], "U": x[lay.U]}
-        for c in range(n):
-            blocks[f"C{c}"] = np.asarray(params[f"Z{c}"], float) if self.shape.pinned else x[lay.C[c]]
-            blocks[f"L{c}"] = pair[c]
-            if len(lay.pair_slack):
-                blocks[f"A{c}"] = x[lay.pair_slack[c]][None, :]
-        for o, lam in enumerate(obstacles):
-            blocks[f"L_o{o}"] = lam
-            if len(lay.obstacle_slack):
-                blocks[f"A_o{o}"] = x[lay.obstacle_slack[o]][None, :]
-        return blocks
-
-    def positions(self, x: np.ndarray, pinned: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Own constrained positions (d, K) and the copies (n, d, K) of a primal vector."""
-        lay = self.problem.layout
-        return x.take(lay.own), (pinned if pinned is not None else x.take(lay.C))
 
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, pinned: np.ndarray | None = None,
@@ -1248,7 +1376,7 @@ class SequentialLocalQP:
         (:meth:`~swarmpc.model.agent_model.AgentModel.braking_inputs`) within the input box."""
         s, model = self.settings, self.settings.model
         state = np.asarray(params["x0"], float)
-        coast, _ = self.rebuild(state, np.zeros((model.input_dim, s.horizon)))
+        coast, _ = self.check.rebuild(state, np.zeros((model.input_dim, s.horizon)))
         brake = model.rollout(state, model.braking_inputs(state, s.horizon, s.accel)).T
         return [coast, brake]
 
@@ -1266,107 +1394,34 @@ class SequentialLocalQP:
             change = max(change, _row_change(old.obstacle_normal, new.obstacle_normal, obstacle <= bound))
         return change <= o.certificate_tol
 
-    def verified(self, params: dict[str, Any], X: np.ndarray, U: np.ndarray,
-                 pinned: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
-        """(named blocks, solution vector) of the plan (``X`` (s, N+1), ``U`` (m, N)) as an answer
-        of this shape against the ``pinned`` copies (n, d, K) when it meets the problem's
-        constraints to :data:`VERIFY_TOL`: it flies the dynamics from the measured state within
-        the input box, every pair keeps d_min (slack or not) and every hard claim of
-        :meth:`violation` holds, by the best certificates of its positions; None otherwise. A
-        repair keeps its agent's current plan this way when its solves fail."""
-        s = self.settings
-        X, U = np.asarray(X, float), np.asarray(U, float)
-        rebuilt, clipped = self.rebuild(np.asarray(params["x0"], float), U)
-        if np.max(np.abs(clipped - U), initial=0.0) > VERIFY_TOL or np.max(np.abs(rebuilt - X)) > VERIFY_TOL:
-            return None
-        own = X[s.model.position_rows, s.first_constrained_step:]
-        lin = self.certify(own, pinned, copy_deltas(params["delta"], self.shape.copies, s.dim))
-        if np.max(s.d_min - lin.pair_value, initial=0.0) > VERIFY_TOL or self.violation(X, lin, params) > VERIFY_TOL:
-            return None
-        blocks = self._blocks(X, U, pinned, lin)
-        return blocks, self.vector_of(blocks, params["delta"])
-
     def _failed(self, x: np.ndarray, status: str, wall: float, iterations: int) -> NLPSolution:
         blocks = {"X": x[self.problem.layout.X], "U": x[self.problem.layout.U]}
         return NLPSolution(x=blocks, x_vec=np.zeros(0), lam_x=np.zeros(0), lam_g=np.zeros(self.problem.A.shape[0]),
                            cost=np.inf, success=False, status=status,
                            iterations=iterations, solve_time=wall)
 
-    def rebuild(self, state: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Inputs (m, N) clipped to their box and the states (s, N+1) they drive from ``state``:
-        the applied plan meets the dynamics and the input limits exactly."""
-        s = self.settings
-        U = np.clip(inputs, *self._input_box) if s.accel is not None else inputs.copy()
-        X = (self.transition @ state + self.response @ U.ravel(order="F")).reshape(s.horizon + 1, s.model.state_dim).T
-        return X, U
-
     def _result(
         self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray, pinned: np.ndarray | None,
         wall: float, rounds: int, converged: bool, delta: np.ndarray,
         targets: tuple[np.ndarray, np.ndarray] | None,
     ) -> NLPSolution:
-        """The rebuilt plan, certified by the last round's certificates (their values at the
-        rebuilt positions are lower bounds on the distances, so a plan they clear is clear),
-        or by the best certificates of the rebuilt plan if those do not clear it."""
-        s, lay = self.settings, self.problem.layout
-        X, U = self.rebuild(np.asarray(params["x0"], float), x.take(lay.U))
-        own = X[s.model.position_rows, s.first_constrained_step:]
-        copies = pinned if pinned is not None else x.take(lay.C)
-        offsets = own[None] - copies
-        final = self.certify.values_at(own, offsets, lin)
-        violation = self.violation(X, final, params)
-        if violation > 0.0:
-            final = self.certify.best(own, offsets, delta)
-            violation = self.violation(X, final, params)
-        blocks = self._blocks(X, U, copies, final)
+        """The answer of the loop's plan ``x`` and certificates ``lin``: the rebuilt plan as
+        :meth:`PlanCheck.certified` certifies it, its cost, and the solution vector of ``x`` and
+        ``lin`` (whose rows are kept for a call that starts from it)."""
+        X, U, copies, final, violation = self.check.certified(params, x, lin, pinned, delta)
+        blocks = self.layout.blocks(X, U, copies, final)
         status = "solved" if converged else "max_rounds"
         if violation > 0.0:
             status = f"unsafe_{violation:.1e}"
         stacked = None if targets is None else (np.ascontiguousarray(copies, float), *targets)
-        vector = np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]])
+        vector = self.layout.vector(x, lin)
         self._carry(vector, delta, pinned, lin)  # lin: the rows of the vector's certificates at x
         return NLPSolution(
             x=blocks, x_vec=vector,
-            lam_x=np.zeros(0), lam_g=y, cost=stacked_objective(blocks, params, s, stacked),
+            lam_x=np.zeros(0), lam_g=y, cost=stacked_objective(blocks, params, self.settings, stacked),
             success=violation <= 0.0, status=status,
             iterations=rounds, solve_time=wall,
         )
-
-    def _blocks(self, X: np.ndarray, U: np.ndarray, copies: np.ndarray, lin: Linearisation) -> dict[str, np.ndarray]:
-        """The NLP's named blocks: plan, copies, certificates and the least slacks they need."""
-        s = self.settings
-        blocks: dict[str, np.ndarray] = {"X": X, "U": U}
-        soft = self.shape.pair_collision == "soft"
-        for c, (C, L, A) in enumerate(self._block_keys):
-            blocks[C] = copies[c]
-            blocks[L] = lin.pair_lam[c]
-            if soft:
-                blocks[A] = np.maximum(s.d_min - lin.pair_value[c], 0.0)[None, :]
-        for o, lam in enumerate(lin.obstacle_lam):
-            blocks[f"L_o{o}"] = lam
-            if s.collision == "soft":
-                blocks[f"A_o{o}"] = np.maximum(s.d_min - lin.obstacle_value[o], 0.0)[None, :]
-        return blocks
-
-    def violation(self, X: np.ndarray, lin: Linearisation, params: dict[str, Any]) -> float:
-        """Largest shortfall of a plan against the hard claims (0 when all hold): separations
-        (>= d_min) by the values of dual-feasible certificates (lower bounds on the distances),
-        planes, workspace and speed by direct evaluation. Inputs are within their box and the
-        states follow the dynamics by construction (:meth:`rebuild`)."""
-        s, first = self.settings, self.settings.first_constrained_step
-        gaps = [0.0]  # d_min - min(value) is max(d_min - value), bit for bit (rounding is monotone)
-        if self.shape.pair_collision == "hard" and lin.pair_value.size:
-            gaps.append(s.d_min - float(lin.pair_value.min()))
-        if s.collision == "hard" and lin.obstacle_value.size:
-            gaps.append(s.d_min - float(lin.obstacle_value.min()))
-        own = X[s.model.position_rows, first:]
-        for p in range(self.shape.planes):
-            gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
-        if self._workspace is not None:
-            gaps += [float((self._workspace[0] - own).max()), float((own - self._workspace[1]).max())]
-        if s.speed is not None:
-            gaps.append(float(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1).max()) - s.speed)
-        return max(gaps)
 
 
 class QPLocalLadder:
@@ -1429,7 +1484,7 @@ class QPLocalLadder:
             shape = LocalShape(copies, planes, pinned is not None, self.pair_collision)
             stepper = self.stepper(shape)
             if isinstance(guess, np.ndarray) and guess.size != stepper.vector_size:
-                guess = self._layout_of(shape, guess).blocks_of(guess, params)
+                guess = self._layout_of(shape, guess).layout.blocks_of(guess, params)
             y = duals[1] if duals is not None and duals[1].size == stepper.problem.A.shape[0] else None
             return stepper.solve(params, guess, pinned, caps, y, restarts=restarts, rounds=rounds)
 
@@ -1472,14 +1527,14 @@ class QPLocalLadder:
             return guess
         with self._lock:
             stepper = self._layout_of(LocalShape(copies, planes, pinned, self.pair_collision), guess)
-            return stepper.blocks_of(guess, params)
+            return stepper.layout.blocks_of(guess, params)
 
     def solution_vector(
         self, blocks: dict[str, np.ndarray], params: dict[str, Any], *, copies: int, planes: int = 0,
         pinned: bool = False,
     ) -> np.ndarray:
         """A solution vector of this ladder's problem from the named blocks of another solver's
-        answer (see :meth:`SequentialLocalQP.vector_of`), to be passed back as a later guess."""
+        answer (see :meth:`SolutionLayout.vector_of`), to be passed back as a later guess."""
         with self._lock:
             stepper = self.stepper(LocalShape(copies, planes, pinned, self.pair_collision))
-            return stepper.vector_of(blocks, params["delta"])
+            return stepper.layout.vector_of(blocks, params["delta"])
