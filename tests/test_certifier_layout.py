@@ -1,8 +1,9 @@
 """The QP local step's certificates and objective, taken the fast way, against the plain way.
 
 ``Certifier`` writes every copy's box certificates straight into their (n, 2d, K) layout from
-:func:`swarmpc.formulation.certificates.box_normals`, and ``stacked_objective`` takes the copies
-stacked: both must give exactly (bit for bit) what the per-copy calls give.
+:func:`swarmpc.formulation.certificates.box_normals` of all copies' offsets at once, and
+``stacked_objective`` takes the copies stacked: both must give exactly (bit for bit) what the
+per-copy calls give.
 """
 
 from __future__ import annotations
@@ -31,6 +32,21 @@ def test_box_normals_are_the_certificates_normals(dim: int, seed: int) -> None:
     certs = box_certificates(offsets, half[:, 0])
     assert np.array_equal(np.vstack([np.maximum(direction, 0.0), np.maximum(-direction, 0.0)]), certs.lam)
     assert np.array_equal(value, certs.value)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("seed", range(5))
+def test_box_normals_of_stacked_offsets_are_those_of_each_copy(dim: int, seed: int) -> None:
+    """Offsets (n, d, K) against one box per copy (n, d, 1) give each copy's normals and values
+    of its own (d, K) call, bit for bit, points inside the boxes too."""
+    rng = np.random.default_rng(seed)
+    offsets, half = rng.uniform(-1.0, 1.0, (4, dim, 30)), rng.uniform(0.1, 0.6, (4, dim, 1))
+    direction, value = box_normals(offsets, half)
+    assert direction.shape == offsets.shape and value.shape == (4, 30)
+    for c in range(4):
+        alone = box_normals(offsets[c], half[c])
+        assert np.array_equal(direction[c], alone[0]) and np.array_equal(value[c], alone[1])
+    assert np.any(value < 0) and np.any(value > 0)  # both cases taken
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -120,23 +120,27 @@ def box_certificates(offsets: np.ndarray, half_size: np.ndarray) -> Certificates
 
 
 def box_normals(q: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The unit normals n (d, K) of :func:`box_certificates` (lambda = [max(n, 0); max(-n, 0)])
-    and their values (K,), without its checks: offsets ``q`` (d, K), half-sizes ``half`` (d, K),
-    or (d, 1) / (1, 1) for every column. The local step takes its certificates this way on
-    every round, and lays lambda out itself."""
+    """The unit normals n (..., d, K) of :func:`box_certificates` (lambda = [max(n, 0); max(-n, 0)])
+    and their values (..., K), without its checks: offsets ``q`` (..., d, K) (the point's axes
+    second to last), half-sizes ``half`` of the same shape or with a 1 on any axis to
+    broadcast. The local step takes its certificates this way on every round, all copies at
+    once ((n, d, K) offsets against one box each, (n, d, 1)), and lays lambda out itself."""
     excess = np.abs(q) - half
     outside = np.maximum(excess, 0.0)
-    gap = np.sqrt(np.einsum("ik,ik->k", outside, outside))
+    gap = np.sqrt((outside * outside).sum(-2))  # the d terms in order, as einsum adds them
     is_out = gap > 0
-    direction = np.copysign(outside, q) / np.where(is_out, gap, 1.0)  # |q| > half > 0 wherever it counts
+    every = bool(is_out.all())  # all outside: the common case, dividing by gap as it stands
+    divisor = gap if every else np.where(is_out, gap, 1.0)
+    direction = np.copysign(outside, q) / divisor[..., None, :]  # |q| > half > 0 where it counts
     value = gap
-    if not is_out.all():  # offsets inside (or on) the box: the shallowest exit axis
-        inner = np.nonzero(~is_out)[0]
-        axis = np.argmax(excess[:, inner], axis=0)
-        direction[:, inner] = 0.0
-        direction[axis, inner] = np.where(q[axis, inner] >= 0, 1.0, -1.0)
+    if not every:  # offsets inside (or on) the box: the shallowest exit axis
+        *lead, inner = np.nonzero(~is_out)
+        axis = np.argmax(np.moveaxis(excess, -2, -1)[(*lead, inner)], axis=1)
+        direction[(*lead, slice(None), inner)] = 0.0
+        exit_axis = (*lead, axis, inner)
+        direction[exit_axis] = np.where(q[exit_axis] >= 0, 1.0, -1.0)
         value = gap.copy()
-        value[inner] = excess[axis, inner]
+        value[(*lead, inner)] = excess[exit_axis]
     return direction, value
 
 

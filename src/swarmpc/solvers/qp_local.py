@@ -90,6 +90,7 @@ __all__ = [
     "OSQPBackend",
     "PIQPBackend",
     "PROVEN_INFEASIBLE",
+    "PlanCheck",
     "QPAnswer",
     "QPBackend",
     "QPLocalLadder",
@@ -97,6 +98,7 @@ __all__ = [
     "LocalQPProblem",
     "SeparationProof",
     "SequentialLocalQP",
+    "SolutionLayout",
     "box_covered",
     "copy_deltas",
     "speed_polytope",
@@ -293,6 +295,11 @@ class Linearisation:
     obstacle_value: np.ndarray
 
 
+def add_rows(products: np.ndarray) -> np.ndarray:
+    """Sum of (n, d, K) over its d axis, term by term in order (the sum ``einsum`` takes)."""
+    return products.sum(1)
+
+
 class Certifier:
     """Best certificates of an own plan against copies (delta boxes) and static obstacles, and
     the linear rows of given certificates."""
@@ -314,22 +321,21 @@ class Certifier:
         d, K = own.shape
         return self.best(own, own[None] - copies, copy_deltas(delta, len(copies), d))
 
-    def best(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray,
-             columns: np.ndarray | None = None) -> Linearisation:
-        """:meth:`__call__` from the offsets own - copies (n, d, K) and the pairs' Delta (d, n);
-        ``columns``: Delta repeated per step (d, n K) when the caller has it (it holds for every
-        round of a call)."""
+    def best(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray) -> Linearisation:
+        """:meth:`__call__` from the offsets own - copies (n, d, K) and the pairs' Delta (d, n)."""
         d, K = own.shape
         n = len(offsets)
         lam = np.empty((n, 2 * d, K))
-        if n:  # every copy in one call, each column against its pair's box
-            columns = np.repeat(half, K, axis=1) if columns is None else columns
-            direction, _ = box_normals(offsets.transpose(1, 0, 2).reshape(d, n * K), columns)
-            direction = direction.reshape(d, n, K).transpose(1, 0, 2)
-            np.maximum(direction, 0.0, out=lam[:, :d])  # lambda_+, then lambda_-
-            np.maximum(-direction, 0.0, out=lam[:, d:])
         certs = tuple(certifier(own).lam for certifier in self.obstacles)
-        return self.rows_at(own, offsets, half, lam, certs)
+        if not n:
+            return self.rows_at(own, offsets, half, lam, certs)
+        # every copy in one call, each against its pair's box
+        direction, _ = box_normals(offsets, half.T[:, :, None])
+        np.maximum(direction, 0.0, out=lam[:, :d])  # lambda_+, then lambda_-
+        np.maximum(-direction, 0.0, out=lam[:, d:])
+        # lambda_+ - lambda_- is the direction and lambda_+ + lambda_- its magnitude, bit for
+        # bit (one of the two is zero), so the rows are those of rows_at without re-deriving them
+        return self._rows(own, offsets, half, lam, direction, np.abs(direction), certs)
 
     def rows(self, own: np.ndarray, copies: np.ndarray, delta: np.ndarray, pair_lam: np.ndarray,
              obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
@@ -343,20 +349,40 @@ class Certifier:
     def rows_at(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray, pair_lam: np.ndarray,
                 obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
         """:meth:`rows` from the offsets own - copies (n, d, K) and the pairs' Delta (d, n)."""
-        d, K = own.shape
-        normal = pair_lam[:, :d] - pair_lam[:, d:]
-        constant = np.einsum("dn,ndk->nk", half, pair_lam[:, :d] + pair_lam[:, d:])
+        d = len(own)
+        plus, minus = pair_lam[:, :d], pair_lam[:, d:]
+        return self._rows(own, offsets, half, pair_lam, plus - minus, plus + minus, obstacle_lam)
+
+    def _rows(self, own: np.ndarray, offsets: np.ndarray, half: np.ndarray, pair_lam: np.ndarray,
+              normal: np.ndarray, magnitude: np.ndarray, obstacle_lam: tuple[np.ndarray, ...]) -> Linearisation:
+        """:meth:`rows_at` given the pair normals lambda_+ - lambda_- and magnitudes lambda_+ +
+        lambda_- (n, d, K). Sums over the d axis are reductions of elementwise products, which
+        add the d terms in order as ``einsum`` does on these shapes, without its dispatch."""
+        constant = add_rows(half.T[:, :, None] * magnitude)
         if self.G:
+            d, K = own.shape
             o_normal = np.array([G.T @ lam for G, lam in zip(self.G, obstacle_lam, strict=True)]).reshape(-1, d, K)
             o_constant = np.array([g @ lam for g, lam in zip(self.g, obstacle_lam, strict=True)]).reshape(-1, K)
-            o_value = np.einsum("odk,dk->ok", o_normal, own) - o_constant
+            o_value = add_rows(o_normal * own) - o_constant
         else:  # no obstacles: empty rows
             o_normal, o_constant, o_value = self._no_obstacle
         return Linearisation(
             pair_lam=pair_lam, pair_normal=normal, pair_constant=constant,
-            pair_value=np.einsum("ndk,ndk->nk", normal, offsets) - constant,
+            pair_value=add_rows(normal * offsets) - constant,
             obstacle_lam=obstacle_lam, obstacle_normal=o_normal, obstacle_constant=o_constant,
             obstacle_value=o_value,
+        )
+
+    def values_at(self, own: np.ndarray, offsets: np.ndarray, lin: Linearisation) -> Linearisation:
+        """``lin``'s rows at other positions: :meth:`rows_at` of its certificates, whose normals
+        and constants depend on the certificates and the pairs' Delta only and are taken as
+        they are."""
+        o_value = add_rows(lin.obstacle_normal * own) - lin.obstacle_constant if self.G else lin.obstacle_value
+        return Linearisation(
+            pair_lam=lin.pair_lam, pair_normal=lin.pair_normal, pair_constant=lin.pair_constant,
+            pair_value=add_rows(lin.pair_normal * offsets) - lin.pair_constant,
+            obstacle_lam=lin.obstacle_lam, obstacle_normal=lin.obstacle_normal,
+            obstacle_constant=lin.obstacle_constant, obstacle_value=o_value,
         )
 
     def pack(self, lin: Linearisation) -> np.ndarray:
@@ -372,6 +398,10 @@ class Certifier:
             obstacles.append(rest[: len(g) * K].reshape(len(g), K))
             rest = rest[len(g) * K:]
         return pair, tuple(obstacles)
+
+
+FIXED_COSTS_KEPT = 256
+"""Goals whose fixed linear cost a :class:`LocalQPProblem` keeps (the oldest is dropped first)."""
 
 
 class LocalQPProblem:
@@ -392,6 +422,8 @@ class LocalQPProblem:
         self._copy_keys = ([f"Y{c}" for c in range(shape.copies)], [f"Z{c}" for c in range(shape.copies)])
         self._goal_weights = (-2.0 * s.Q, -2.0 * s.Qf)
         """The goal's weights in q (states before the last, the last)."""
+        self._fixed_costs: dict[bytes, np.ndarray] = {}
+        """q's goal and slack terms per goal (:meth:`_fixed_cost`): agents of one shape share it."""
         self._cost_pattern()
         self._constraint_pattern()
 
@@ -432,24 +464,37 @@ class LocalQPProblem:
 
     def linear_cost(self, params: dict[str, Any],
                     targets: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """q: goal tracking, consensus (gamma - rho_b z per block) and slack prices, written
-        block by block in the layout's order; ``targets``: :meth:`copy_targets` of ``params``
-        when the caller has them."""
-        s, lay, first = self.settings, self.layout, self.settings.first_constrained_step
-        goal = np.asarray(params["goal"], float)
+        """q: goal tracking, consensus (gamma - rho_b z per block) and slack prices, in the
+        layout's order; ``targets``: :meth:`copy_targets` of ``params`` when the caller has them."""
+        s, lay = self.settings, self.layout
         rho, weight = float(params["rho"]), float(params["owner_weight"])
-        q = np.zeros(lay.size)
+        q = self._fixed_cost(np.asarray(params["goal"], float)).copy()
         states = q[: (s.horizon + 1) * s.model.state_dim].reshape(s.horizon + 1, s.model.state_dim)  # a view
-        states[:-1] = self._goal_weights[0] @ goal
-        states[-1] = self._goal_weights[1] @ goal
         consensus = np.asarray(params["Y"], float) - rho * weight * np.asarray(params["Z"], float)
-        states[first:, s.model.position_rows] += consensus.T
+        states[s.first_constrained_step:, s.model.position_rows] += consensus.T
         if not self.shape.pinned and self.shape.copies:
             stacked = targets if targets is not None else self.copy_targets(params)
             assert stacked is not None  # there are copies
             Y, Z = stacked
-            q[lay.copy_start: lay.slack_start] = np.transpose(Y - rho * Z, (0, 2, 1)).ravel()
-        q[lay.slack_start:] = s.kappa
+            q[lay.C] = Y - rho * Z
+        return q
+
+    def _fixed_cost(self, goal: np.ndarray) -> np.ndarray:
+        """q without the consensus terms: the goal's (-2 Q goal per state, -2 Qf goal for the
+        last) and the slack prices kappa. Kept per goal (a few hundred at most), since the goal
+        seldom changes between calls."""
+        key = goal.tobytes()
+        q = self._fixed_costs.get(key)
+        if q is None:
+            s, lay = self.settings, self.layout
+            q = np.zeros(lay.size)
+            states = q[: (s.horizon + 1) * s.model.state_dim].reshape(s.horizon + 1, s.model.state_dim)  # a view
+            states[:-1] = self._goal_weights[0] @ goal
+            states[-1] = self._goal_weights[1] @ goal
+            q[lay.slack_start:] = s.kappa
+            if len(self._fixed_costs) >= FIXED_COSTS_KEPT:
+                self._fixed_costs.pop(next(iter(self._fixed_costs)))  # the oldest
+            self._fixed_costs[key] = q
         return q
 
     # --- constraints ------------------------------------------------------------------------
@@ -464,9 +509,22 @@ class LocalQPProblem:
         self._dynamics_rows(A)
         self._limit_rows(A)
         self._collision_rows(A)
-        self.A, self._A_values = A.freeze(self._row_counter.size)
-        self._A_pattern = A
+        self.A, values = A.freeze(self._row_counter.size)
         self.base_lower, self.base_upper = np.concatenate(self._lower), np.concatenate(self._upper)
+        self._A_base = A.data(values)
+        """A's data with the changing entries (certificate and plane normals) at zero."""
+        changing = [self._obstacle_slots, self._pair_slots, self._plane_slots]
+        changing += [self._copy_slots] if self._copy_slots is not None else []
+        places = np.concatenate([np.ravel(slots) for slots in changing])
+        if np.any(np.bincount(A.position, minlength=A.nnz)[A.position[places]] != 1):
+            raise AssertionError("a changing entry of A shares its place with another entry")
+        self._obstacle_places, self._pair_places, self._plane_places = (A.position[slots] for slots in changing[:3])
+        self._copy_places = A.position[self._copy_slots] if self._copy_slots is not None else None
+        self._row_slices = {name: slice(int(index.min()), int(index.max()) + 1) if index.size else slice(0, 0)
+                            for name, index in self.rows.items()}
+        """Each block's rows as a slice (every block is a consecutive range)."""
+        self._floor = self.settings.d_min + self.options.margin
+        """The separation rows' bound before their certificates' constants."""
 
     def _block(self, name: str, *size: int, lower: Any = 0.0, upper: Any = np.inf) -> np.ndarray:
         """Row indices of a new block of rows, with their constant bounds."""
@@ -524,15 +582,18 @@ class LocalQPProblem:
         A.add(self._block("obstacle_slack", *lay.obstacle_slack.shape), lay.obstacle_slack, 1.0)
 
     def constraint_values(self, lin: Linearisation, params: dict[str, Any]) -> np.ndarray:
-        """A's data (CSC order) with the certificates' normals and the planes' normals."""
-        values = self._A_values.copy()
-        values[self._obstacle_slots] = lin.obstacle_normal
-        values[self._pair_slots] = lin.pair_normal
-        if self._copy_slots is not None:
-            values[self._copy_slots] = -lin.pair_normal
+        """A's data (CSC order) with the certificates' normals and the planes' normals. Each of
+        these entries has a place of its own in the pattern (checked at set-up) and is written
+        there as 0.0 + value, the sum of its one slot (so a normal of -0.0 reads +0.0)."""
+        data = self._A_base.copy()
+        if self._obstacle_places.size:
+            data[self._obstacle_places] = lin.obstacle_normal + 0.0
+        data[self._pair_places] = lin.pair_normal + 0.0
+        if self._copy_places is not None:
+            data[self._copy_places] = 0.0 - lin.pair_normal  # = -n + 0.0, bit for bit
         for p in range(self.shape.planes):
-            values[self._plane_slots[p]] = np.asarray(params[f"Hn{p}"], float)
-        return self._A_pattern.data(values)
+            data[self._plane_places[p]] = np.asarray(params[f"Hn{p}"], float) + 0.0
+        return data
 
     def bounds(
         self, lin: Linearisation, params: dict[str, Any], pinned: np.ndarray | None = None,
@@ -540,16 +601,17 @@ class LocalQPProblem:
     ) -> tuple[np.ndarray, np.ndarray]:
         """(l, u): measured state, separation rows d_min + margin + constant (pinned copies move
         their n'c to the bound), plane offsets, and slack caps (a pinned slack's upper bound)."""
-        s, margin = self.settings, self.options.margin
+        rows = self._row_slices
         lower, upper = self.base_lower.copy(), self.base_upper.copy()
-        lower[self.rows["init"]] = upper[self.rows["init"]] = np.asarray(params["x0"], float)
-        lower[self.rows["obstacles"]] = s.d_min + margin + lin.obstacle_constant
-        pair = s.d_min + margin + lin.pair_constant
+        lower[rows["init"]] = upper[rows["init"]] = np.asarray(params["x0"], float)
+        if lin.obstacle_constant.size:
+            lower[rows["obstacles"]] = (self._floor + lin.obstacle_constant).ravel()
+        pair = self._floor + lin.pair_constant
         if pinned is not None:
-            pair = pair + np.einsum("ndk,ndk->nk", lin.pair_normal, pinned)
-        lower[self.rows["pairs"]] = pair
+            pair = pair + add_rows(lin.pair_normal * pinned)
+        lower[rows["pairs"]] = pair.ravel()
         for p in range(self.shape.planes):
-            lower[self.rows["planes"][p]] = np.ravel(params[f"Hb{p}"]) + margin
+            lower[self.rows["planes"][p]] = np.ravel(params[f"Hb{p}"]) + self.options.margin
         for slot, cap in (slack_caps or {}).items():
             upper[self.rows["pair_slack"][slot]] = cap
         return lower, upper
@@ -765,7 +827,7 @@ class LocalQP:
                                sp.csc_matrix((A_data, pb.A.indices, pb.A.indptr), shape=pb.A.shape), lower, upper)
             self._ready = True
         else:
-            same_A = self._A_data is not None and np.array_equal(A_data, self._A_data)
+            same_A = self._A_data is not None and bool((A_data == self._A_data).all())  # as np.array_equal
             self.backend.update(q, lower, upper, P_data, None if same_A else A_data)
         self._P_key, self._A_data = key, A_data
         return self.backend.solve(start, y)
@@ -832,7 +894,7 @@ def stacked_objective(blocks: dict[str, np.ndarray], params: dict[str, Any], s: 
 
 
 VERIFY_TOL = 1e-7
-"""Largest violation of a constraint a verified plan may show (:meth:`SequentialLocalQP.verified`;
+"""Largest violation of a constraint a verified plan may show (:meth:`PlanCheck.verified`;
 IPOPT's constraint tolerance in the reference check)."""
 
 PROVEN_INFEASIBLE = "qp_proven_infeasible"
@@ -957,77 +1019,40 @@ class LoopRecord:
     """Rounds whose QP answer was exact on its active set (OSQP: polished)."""
 
 
-Pairs = tuple[np.ndarray, np.ndarray | None]
-"""A call's pairs: their Delta (d, n), and the same repeated per constrained step (d, n K)."""
-
-Call = tuple[dict[str, Any], tuple[np.ndarray, np.ndarray] | None, Pairs, list[Any], int]
+Call = tuple[dict[str, Any], tuple[np.ndarray, np.ndarray] | None, np.ndarray, list[Any], int]
 """What every certificate loop of a call shares: parameters, the copies' stacked multipliers and
-targets, the pairs, the tally (rounds, QP iterations, solver time, exact answers), the round cap."""
+targets, the pairs' Delta (d, n), the tally (rounds, QP iterations, solver time, exact answers), the round cap."""
 
 
 def _row_change(old: np.ndarray, new: np.ndarray, near: np.ndarray) -> float:
     """Largest change between two certificate normals (rows, d, K) over the rows ``near`` (rows, K)
     their bound (0 when none is)."""
-    if not np.any(near):
+    if not near.any():
         return 0.0
     return max(0.0, float((np.abs(old - new) * near[:, None, :]).max()))
 
 
-class SequentialLocalQP:
-    """One shape's local step: the certificate loop around :class:`LocalQP` (module docstring),
-    then the exact rebuild and check of the plan. Returns :class:`NLPSolution` with the blocks
-    the IPOPT local step returns (X, U, C{c}, L{c}, A{c}, L_o{n}, A_o{n})."""
+class SolutionLayout:
+    """One shape's layouts and the conversions between them: the NLP's named blocks (X, U,
+    C{c}, L{c}, A{c}, L_o{o}, A_o{o}), the QP's primal vector (:class:`VariableLayout`) and the
+    solution vector (the primal vector, then the certificates it was linearised with last, as
+    the NLP's vector carries its L blocks)."""
 
-    def __init__(self, s: OCPSettings, shape: LocalShape, options: QPLocalOptions,
-                 backend: QPBackend | None = None) -> None:
-        self.settings, self.shape, self.options = s, shape, options
-        self.problem = LocalQPProblem(s, shape, options)
-        self.qp = LocalQP(self.problem, backend or qp_backend(options, shape.pinned))
-        self.certify = Certifier(s)
-        self.transition, self.response = rollout_matrices(s)
-        lower, upper = s.model.input_bounds(s.accel, s.speed)
-        self._input_box = (lower[:, None], upper[:, None])
-        """The input box as columns (m, 1) (:meth:`rebuild` clips to it on every call)."""
-        self._block_keys = [(f"C{c}", f"L{c}", f"A{c}") for c in range(shape.copies)]
-        self._workspace = (s.lower[:, None], s.upper[:, None]) if s.lower is not None and s.upper is not None else None
-        """The workspace box as columns (d, 1) (:meth:`violation` checks it on every call)."""
-        self.proof = SeparationProof(s, self.transition, self.response, options.margin) if (
-            shape.pinned and shape.pair_collision == "hard") else None
-        """Decides failed repair calls that no solver can answer (:data:`PROVEN_INFEASIBLE`)."""
-        self.last_record: LoopRecord | None = None
-        self._failed_restarts: bytes | None = None
-        """The problem (:meth:`_problem_key`) whose restarts failed last: a retry of the same
-        problem from another start (a repair retried from the agent's own plan) skips them."""
-        self.vector_size = self.problem.layout.size + shape.copies * 2 * s.dim * s.num_constrained + sum(
+    def __init__(self, s: OCPSettings, shape: LocalShape, variables: VariableLayout, certify: Certifier) -> None:
+        self.settings, self.shape, self.variables, self.certify = s, shape, variables, certify
+        self.size = variables.size + shape.copies * 2 * s.dim * s.num_constrained + sum(
             len(g) for _, g in s.obstacles) * s.num_constrained
-        """Length of a solution's ``x_vec``: the QP's primal vector, then the certificates it was
-        linearised with last (as the NLP's vector carries its L blocks)."""
+        """Length of a solution vector."""
+        self._block_keys = [(f"C{c}", f"L{c}", f"A{c}") for c in range(shape.copies)]
 
-    def _start(
-        self, guess: dict[str, np.ndarray] | np.ndarray, pairs: Pairs, pinned: np.ndarray | None,
-    ) -> tuple[np.ndarray, Linearisation]:
-        """The QP's start and first certificates: those a solution vector carries, else the best
-        certificates of the guessed blocks."""
-        if isinstance(guess, np.ndarray):
-            size = self.problem.layout.size
-            x = guess[:size].copy()
-            pair, obstacles = self.certify.unpack(guess[size:], self.shape.copies)
-            own, copies = self.positions(x, pinned)
-            return x, self.certify.rows_at(own, own[None] - copies, pairs[0], pair, obstacles)
-        x = self.start_point(guess)
-        return x, self._certified(x, pinned, pairs)[0]
-
-    def _certified(self, x: np.ndarray, pinned: np.ndarray | None,
-                   pairs: Pairs) -> tuple[Linearisation, np.ndarray, np.ndarray]:
-        """(best certificates, own positions (d, K), offsets own - copies (n, d, K)) of a primal
-        vector; ``pairs``: (the pairs' Delta (d, n), the same repeated per step (d, n K))."""
-        own, copies = self.positions(x, pinned)
-        offsets = own[None] - copies
-        return self.certify.best(own, offsets, *pairs), own, offsets
+    def positions(self, x: np.ndarray, pinned: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Own constrained positions (d, K) and the copies (n, d, K) of a primal vector."""
+        lay = self.variables
+        return x.take(lay.own), (pinned if pinned is not None else x.take(lay.C))
 
     def start_point(self, guess: dict[str, np.ndarray]) -> np.ndarray:
         """A primal vector in this QP's layout from named blocks (X, U, C{c})."""
-        lay, x = self.problem.layout, np.zeros(self.problem.layout.size)
+        lay, x = self.variables, np.zeros(self.variables.size)
         x[lay.X] = np.asarray(guess["X"], float)
         if "U" in guess:
             x[lay.U] = np.asarray(guess["U"], float)
@@ -1036,12 +1061,22 @@ class SequentialLocalQP:
                 x[lay.C[c]] = np.asarray(guess[f"C{c}"], float)
         return x
 
+    def vector(self, x: np.ndarray, lin: Linearisation) -> np.ndarray:
+        """The solution vector of primal ``x`` and the certificates of ``lin``."""
+        return np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]])
+
+    def unpack(self, vector: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """(primal vector, pair certificates (n, 2d, K), obstacle certificates) of a solution
+        vector, all views into it."""
+        size = self.variables.size
+        return (vector[:size], *self.certify.unpack(vector[size:], self.shape.copies))
+
     def vector_of(self, blocks: dict[str, np.ndarray], delta: np.ndarray) -> np.ndarray:
-        """A solution vector of this layout (primal vector, then certificates) from the named
-        blocks of another solver's answer to this shape's problem (the IPOPT fallback): plan,
-        copies (``C{c}``, present also where pinned) and slacks taken as they are, certificates
-        the best ones of its positions, so that the next QP solve starts from that answer."""
-        lay, s = self.problem.layout, self.settings
+        """A solution vector of this layout from the named blocks of another solver's answer to
+        this shape's problem (the IPOPT fallback): plan, copies (``C{c}``, present also where
+        pinned) and slacks taken as they are, certificates the best ones of its positions, so
+        that the next QP solve starts from that answer."""
+        lay, s = self.variables, self.settings
         x = self.start_point(blocks)
         for c, row in enumerate(lay.pair_slack):
             x[row] = np.ravel(blocks.get(f"A{c}", 0.0))
@@ -1052,14 +1087,13 @@ class SequentialLocalQP:
         return np.concatenate([x, self.certify.pack(self.certify(x[lay.own], copies, delta))])
 
     def blocks_of(self, vector: np.ndarray, params: dict[str, Any]) -> dict[str, np.ndarray]:
-        """The named blocks of :func:`swarmpc.formulation.ocp.build_local`'s problem (X, U,
-        C{c}, L{c}, A{c}, L_o{o}, A_o{o}) of a solution vector of this layout: the start of
-        the IPOPT step when this one failed. Pinned copies are taken from ``params`` (Z{c})."""
-        lay, n = self.problem.layout, self.shape.copies
-        x = vector[: lay.size]
-        pair, obstacles = self.certify.unpack(vector[lay.size:], n)
+        """The named blocks of :func:`swarmpc.formulation.ocp.build_local`'s problem of a
+        solution vector of this layout: the start of the IPOPT step when this one failed.
+        Pinned copies are taken from ``params`` (Z{c})."""
+        lay = self.variables
+        x, pair, obstacles = self.unpack(vector)
         blocks = {"X": x[lay.X], "U": x[lay.U]}
-        for c in range(n):
+        for c in range(self.shape.copies):
             blocks[f"C{c}"] = np.asarray(params[f"Z{c}"], float) if self.shape.pinned else x[lay.C[c]]
             blocks[f"L{c}"] = pair[c]
             if len(lay.pair_slack):
@@ -1070,10 +1104,185 @@ class SequentialLocalQP:
                 blocks[f"A_o{o}"] = x[lay.obstacle_slack[o]][None, :]
         return blocks
 
+    def blocks(self, X: np.ndarray, U: np.ndarray, copies: np.ndarray, lin: Linearisation) -> dict[str, np.ndarray]:
+        """The named blocks of a plan (``X`` (s, N+1), ``U`` (m, N)), its copies (n, d, K) and
+        certificates ``lin``, with the least slacks those certificates need."""
+        s = self.settings
+        blocks: dict[str, np.ndarray] = {"X": X, "U": U}
+        soft = self.shape.pair_collision == "soft"
+        for c, (C, L, A) in enumerate(self._block_keys):
+            blocks[C] = copies[c]
+            blocks[L] = lin.pair_lam[c]
+            if soft:
+                blocks[A] = np.maximum(s.d_min - lin.pair_value[c], 0.0)[None, :]
+        for o, lam in enumerate(lin.obstacle_lam):
+            blocks[f"L_o{o}"] = lam
+            if s.collision == "soft":
+                blocks[f"A_o{o}"] = np.maximum(s.d_min - lin.obstacle_value[o], 0.0)[None, :]
+        return blocks
+
+
+class PlanCheck:
+    """The exact rebuild of a QP answer (inputs clipped to their box, states rolled out through
+    the discrete dynamics) and the checks of a plan against one shape's hard claims."""
+
+    def __init__(self, s: OCPSettings, shape: LocalShape, layout: SolutionLayout) -> None:
+        self.settings, self.shape, self.layout, self.certify = s, shape, layout, layout.certify
+        self.transition, self.response = rollout_matrices(s)
+        lower, upper = s.model.input_bounds(s.accel, s.speed)
+        self._input_box = (lower[:, None], upper[:, None])
+        """The input box as columns (m, 1) (:meth:`rebuild` clips to it on every call)."""
+        self._workspace = (s.lower[:, None], s.upper[:, None]) if s.lower is not None and s.upper is not None else None
+        """The workspace box as columns (d, 1) (:meth:`violation` checks it on every call)."""
+
+    def rebuild(self, state: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inputs (m, N) clipped to their box and the states (s, N+1) they drive from ``state``:
+        the applied plan meets the dynamics and the input limits exactly."""
+        s = self.settings
+        U = np.clip(inputs, *self._input_box) if s.accel is not None else inputs.copy()
+        X = (self.transition @ state + self.response @ U.ravel(order="F")).reshape(s.horizon + 1, s.model.state_dim).T
+        return X, U
+
+    def certified(
+        self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, pinned: np.ndarray | None,
+        delta: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Linearisation, float]:
+        """(X, U, copies, certificates, violation) of the rebuilt plan of primal ``x``: certified
+        by ``lin``'s certificates (their values at the rebuilt positions are lower bounds on the
+        distances, so a plan they clear is clear), or by the best certificates of the rebuilt
+        plan if those do not clear it; ``delta``: the pairs' Delta (d, n)."""
+        s, lay = self.settings, self.layout.variables
+        X, U = self.rebuild(np.asarray(params["x0"], float), x.take(lay.U))
+        own = X[s.model.position_rows, s.first_constrained_step:]
+        copies = pinned if pinned is not None else x.take(lay.C)
+        offsets = own[None] - copies
+        final = self.certify.values_at(own, offsets, lin)
+        violation = self.violation(X, final, params)
+        if violation > 0.0:
+            final = self.certify.best(own, offsets, delta)
+            violation = self.violation(X, final, params)
+        return X, U, copies, final, violation
+
+    def violation(self, X: np.ndarray, lin: Linearisation, params: dict[str, Any]) -> float:
+        """Largest shortfall of a plan against the hard claims (0 when all hold): separations
+        (>= d_min) by the values of dual-feasible certificates (lower bounds on the distances),
+        planes, workspace and speed by direct evaluation. Inputs are within their box and the
+        states follow the dynamics by construction (:meth:`rebuild`)."""
+        s, first = self.settings, self.settings.first_constrained_step
+        gaps = [0.0]  # d_min - min(value) is max(d_min - value), bit for bit (rounding is monotone)
+        if self.shape.pair_collision == "hard" and lin.pair_value.size:
+            gaps.append(s.d_min - float(lin.pair_value.min()))
+        if s.collision == "hard" and lin.obstacle_value.size:
+            gaps.append(s.d_min - float(lin.obstacle_value.min()))
+        own = X[s.model.position_rows, first:]
+        for p in range(self.shape.planes):
+            gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
+        if self._workspace is not None:
+            gaps += [float((self._workspace[0] - own).max()), float((own - self._workspace[1]).max())]
+        if s.speed is not None:
+            gaps.append(float(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1).max()) - s.speed)
+        return max(gaps)
+
+    def verified(self, params: dict[str, Any], X: np.ndarray, U: np.ndarray,
+                 pinned: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+        """(named blocks, solution vector) of the plan (``X`` (s, N+1), ``U`` (m, N)) as an answer
+        of this shape against the ``pinned`` copies (n, d, K) when it meets the problem's
+        constraints to :data:`VERIFY_TOL`: it flies the dynamics from the measured state within
+        the input box, every pair keeps d_min (slack or not) and every hard claim of
+        :meth:`violation` holds, by the best certificates of its positions; None otherwise. A
+        repair keeps its agent's current plan this way when its solves fail."""
+        s = self.settings
+        X, U = np.asarray(X, float), np.asarray(U, float)
+        rebuilt, clipped = self.rebuild(np.asarray(params["x0"], float), U)
+        if np.max(np.abs(clipped - U), initial=0.0) > VERIFY_TOL or np.max(np.abs(rebuilt - X)) > VERIFY_TOL:
+            return None
+        own = X[s.model.position_rows, s.first_constrained_step:]
+        lin = self.certify(own, pinned, copy_deltas(params["delta"], self.shape.copies, s.dim))
+        if np.max(s.d_min - lin.pair_value, initial=0.0) > VERIFY_TOL or self.violation(X, lin, params) > VERIFY_TOL:
+            return None
+        blocks = self.layout.blocks(X, U, pinned, lin)
+        return blocks, self.layout.vector_of(blocks, params["delta"])
+
+
+CARRIED_KEPT = 256
+"""Answers whose certificate rows a :class:`SequentialLocalQP` keeps (the oldest is dropped first)."""
+
+
+class SequentialLocalQP:
+    """One shape's local step: the certificate loop around :class:`LocalQP` (module docstring),
+    then the exact rebuild and check of the plan (:class:`PlanCheck`). Returns
+    :class:`NLPSolution` with the blocks the IPOPT local step returns (X, U, C{c}, L{c}, A{c},
+    L_o{n}, A_o{n}), laid out by :class:`SolutionLayout`."""
+
+    def __init__(self, s: OCPSettings, shape: LocalShape, options: QPLocalOptions,
+                 backend: QPBackend | None = None) -> None:
+        self.settings, self.shape, self.options = s, shape, options
+        self.problem = LocalQPProblem(s, shape, options)
+        self.qp = LocalQP(self.problem, backend or qp_backend(options, shape.pinned))
+        self.certify = Certifier(s)
+        self.layout = SolutionLayout(s, shape, self.problem.layout, self.certify)
+        self.check = PlanCheck(s, shape, self.layout)
+        self.proof = SeparationProof(s, self.check.transition, self.check.response, options.margin) if (
+            shape.pinned and shape.pair_collision == "hard") else None
+        """Decides failed repair calls that no solver can answer (:data:`PROVEN_INFEASIBLE`)."""
+        self.last_record: LoopRecord | None = None
+        self._failed_restarts: bytes | None = None
+        """The problem (:meth:`_problem_key`) whose restarts failed last: a retry of the same
+        problem from another start (a repair retried from the agent's own plan) skips them."""
+        self.vector_size = self.layout.size
+        """Length of a solution's ``x_vec`` (:class:`SolutionLayout`)."""
+        self._carried: dict[bytes, Linearisation] = {}
+        """The rows of the certificates that recent answers' vectors carry, by :meth:`_carry_key`:
+        the next call of an agent starts from its last answer, whose rows :meth:`_start` would
+        otherwise derive again from the same numbers."""
+
+    # the layout's and the check's entry points that callers of the step use
     def positions(self, x: np.ndarray, pinned: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Own constrained positions (d, K) and the copies (n, d, K) of a primal vector."""
-        lay = self.problem.layout
-        return x.take(lay.own), (pinned if pinned is not None else x.take(lay.C))
+        """:meth:`SolutionLayout.positions`."""
+        return self.layout.positions(x, pinned)
+
+    def verified(self, params: dict[str, Any], X: np.ndarray, U: np.ndarray,
+                 pinned: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+        """:meth:`PlanCheck.verified`."""
+        return self.check.verified(params, X, U, pinned)
+
+    # the certificate loop
+    def _carry_key(self, vector: np.ndarray, delta: np.ndarray, pinned: np.ndarray | None) -> bytes:
+        """What the rows of a solution vector's certificates depend on: the vector, the pairs'
+        Delta and the pinned copies (the shape fixes every length)."""
+        pinned_bytes = b"" if pinned is None else np.ascontiguousarray(pinned, float).tobytes()
+        return vector.tobytes() + np.ascontiguousarray(delta, float).tobytes() + pinned_bytes
+
+    def _carry(self, vector: np.ndarray, delta: np.ndarray, pinned: np.ndarray | None, lin: Linearisation) -> None:
+        """Keep ``lin``, the rows of the certificates ``vector`` carries, for :meth:`_start`."""
+        if len(self._carried) >= CARRIED_KEPT:
+            self._carried.pop(next(iter(self._carried)))  # the oldest
+        self._carried[self._carry_key(vector, delta, pinned)] = lin
+
+    def _start(
+        self, guess: dict[str, np.ndarray] | np.ndarray, delta: np.ndarray, pinned: np.ndarray | None,
+    ) -> tuple[np.ndarray, Linearisation]:
+        """The QP's start and first certificates: those a solution vector carries, else the best
+        certificates of the guessed blocks."""
+        if isinstance(guess, np.ndarray):
+            primal, pair, obstacles = self.layout.unpack(guess)
+            x = primal.copy()
+            rows = self._carried.get(self._carry_key(guess, delta, pinned))
+            if rows is not None:  # the certificates as the vector holds them, their rows as derived before
+                return x, Linearisation(pair, rows.pair_normal, rows.pair_constant, rows.pair_value, obstacles,
+                                        rows.obstacle_normal, rows.obstacle_constant, rows.obstacle_value)
+            own, copies = self.layout.positions(x, pinned)
+            return x, self.certify.rows_at(own, own[None] - copies, delta, pair, obstacles)
+        x = self.layout.start_point(guess)
+        return x, self._certified(x, pinned, delta)[0]
+
+    def _certified(self, x: np.ndarray, pinned: np.ndarray | None,
+                   delta: np.ndarray) -> tuple[Linearisation, np.ndarray, np.ndarray]:
+        """(best certificates, own positions (d, K), offsets own - copies (n, d, K)) of a primal
+        vector; ``delta``: the pairs' Delta (d, n)."""
+        own, copies = self.layout.positions(x, pinned)
+        offsets = own[None] - copies
+        return self.certify.best(own, offsets, delta), own, offsets
 
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, pinned: np.ndarray | None = None,
@@ -1095,12 +1304,11 @@ class SequentialLocalQP:
         the very problem whose restarts failed last (a repair retried from another start)."""
         began = time.perf_counter()
         delta = copy_deltas(params["delta"], self.shape.copies, self.settings.dim)
-        pairs = (delta, np.repeat(delta, self.settings.num_constrained, axis=1) if self.shape.copies else None)
         targets = self.problem.copy_targets(params)
-        x, lin = self._start(guess, pairs, pinned)
+        x, lin = self._start(guess, delta, pinned)
         tally: list[Any] = [0, 0, 0.0, 0]  # rounds, QP iterations, solver time, exact answers
         cap = self.options.max_rounds if rounds is None else min(rounds, self.options.max_rounds)
-        call = (params, targets, pairs, tally, cap)
+        call = (params, targets, delta, tally, cap)
         answer, x, lin, converged = self._loop(call, x, lin, y, (pinned, slack_caps))
         proven = (not answer.solved and self.proof is not None and pinned is not None
                   and self.proof.infeasible(params["x0"], pinned, delta))
@@ -1109,7 +1317,7 @@ class SequentialLocalQP:
         for plan in self._fallback_plans(params) if restart and key != self._failed_restarts else []:
             start = x.copy()
             start[self.problem.layout.X] = plan
-            lin = self._certified(start, pinned, pairs)[0]
+            lin = self._certified(start, pinned, delta)[0]
             answer, x, lin, converged = self._loop(call, start, lin, None, (pinned, slack_caps))
             if answer.solved:
                 break
@@ -1120,7 +1328,7 @@ class SequentialLocalQP:
         self.last_record = LoopRecord(tally[0], tally[1], tally[2], wall, converged, tally[3])
         if not answer.solved:
             return self._failed(x, status, wall, tally[1])
-        return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged, pairs, targets)
+        return self._result(params, x, lin, answer.y, pinned, wall, tally[0], converged, delta, targets)
 
     def _problem_key(
         self, params: dict[str, Any], pinned: np.ndarray | None, slack_caps: dict[int, float] | None,
@@ -1141,7 +1349,7 @@ class SequentialLocalQP:
     ) -> tuple[QPAnswer, np.ndarray, Linearisation, bool]:
         """The certificate loop from (x, lin), ``call``'s rounds at most, with ``fixed`` = (pinned
         copies, slack caps): (last answer, plan, its best certificates, converged)."""
-        params, targets, pairs, tally, rounds = call
+        params, targets, delta, tally, rounds = call
         pinned, slack_caps = fixed
         converged = False
         q = self.problem.linear_cost(params, targets)
@@ -1153,7 +1361,7 @@ class SequentialLocalQP:
             tally[3] += answer.exact
             if not answer.solved:
                 break
-            new, own, offsets = self._certified(answer.x, pinned, pairs)
+            new, own, offsets = self._certified(answer.x, pinned, delta)
             moved = float(np.abs(answer.x - x).max()) if x.size else 0.0
             x, y = answer.x, answer.y
             converged = moved <= self.options.plan_tol or self._settled(lin, new, own, offsets)
@@ -1168,7 +1376,7 @@ class SequentialLocalQP:
         (:meth:`~swarmpc.model.agent_model.AgentModel.braking_inputs`) within the input box."""
         s, model = self.settings, self.settings.model
         state = np.asarray(params["x0"], float)
-        coast, _ = self.rebuild(state, np.zeros((model.input_dim, s.horizon)))
+        coast, _ = self.check.rebuild(state, np.zeros((model.input_dim, s.horizon)))
         brake = model.rollout(state, model.braking_inputs(state, s.horizon, s.accel)).T
         return [coast, brake]
 
@@ -1179,32 +1387,12 @@ class SequentialLocalQP:
         ``own``: the plan's positions (d, K), ``offsets``: own - copies (n, d, K)."""
         o, s = self.options, self.settings
         bound = s.d_min + o.margin + o.active_band
-        pair = np.einsum("ndk,ndk->nk", old.pair_normal, offsets) - old.pair_constant
+        pair = add_rows(old.pair_normal * offsets) - old.pair_constant
         change = _row_change(old.pair_normal, new.pair_normal, pair <= bound)
         if len(old.obstacle_normal) and change <= o.certificate_tol:  # no obstacles: no rows to compare
-            obstacle = np.einsum("odk,dk->ok", old.obstacle_normal, own) - old.obstacle_constant
+            obstacle = add_rows(old.obstacle_normal * own) - old.obstacle_constant
             change = max(change, _row_change(old.obstacle_normal, new.obstacle_normal, obstacle <= bound))
         return change <= o.certificate_tol
-
-    def verified(self, params: dict[str, Any], X: np.ndarray, U: np.ndarray,
-                 pinned: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
-        """(named blocks, solution vector) of the plan (``X`` (s, N+1), ``U`` (m, N)) as an answer
-        of this shape against the ``pinned`` copies (n, d, K) when it meets the problem's
-        constraints to :data:`VERIFY_TOL`: it flies the dynamics from the measured state within
-        the input box, every pair keeps d_min (slack or not) and every hard claim of
-        :meth:`violation` holds, by the best certificates of its positions; None otherwise. A
-        repair keeps its agent's current plan this way when its solves fail."""
-        s = self.settings
-        X, U = np.asarray(X, float), np.asarray(U, float)
-        rebuilt, clipped = self.rebuild(np.asarray(params["x0"], float), U)
-        if np.max(np.abs(clipped - U), initial=0.0) > VERIFY_TOL or np.max(np.abs(rebuilt - X)) > VERIFY_TOL:
-            return None
-        own = X[s.model.position_rows, s.first_constrained_step:]
-        lin = self.certify(own, pinned, copy_deltas(params["delta"], self.shape.copies, s.dim))
-        if np.max(s.d_min - lin.pair_value, initial=0.0) > VERIFY_TOL or self.violation(X, lin, params) > VERIFY_TOL:
-            return None
-        blocks = self._blocks(X, U, pinned, lin)
-        return blocks, self.vector_of(blocks, params["delta"])
 
     def _failed(self, x: np.ndarray, status: str, wall: float, iterations: int) -> NLPSolution:
         blocks = {"X": x[self.problem.layout.X], "U": x[self.problem.layout.U]}
@@ -1212,78 +1400,28 @@ class SequentialLocalQP:
                            cost=np.inf, success=False, status=status,
                            iterations=iterations, solve_time=wall)
 
-    def rebuild(self, state: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Inputs (m, N) clipped to their box and the states (s, N+1) they drive from ``state``:
-        the applied plan meets the dynamics and the input limits exactly."""
-        s = self.settings
-        U = np.clip(inputs, *self._input_box) if s.accel is not None else inputs.copy()
-        X = (self.transition @ state + self.response @ U.ravel(order="F")).reshape(s.horizon + 1, s.model.state_dim).T
-        return X, U
-
     def _result(
         self, params: dict[str, Any], x: np.ndarray, lin: Linearisation, y: np.ndarray, pinned: np.ndarray | None,
-        wall: float, rounds: int, converged: bool, pairs: Pairs, targets: tuple[np.ndarray, np.ndarray] | None,
+        wall: float, rounds: int, converged: bool, delta: np.ndarray,
+        targets: tuple[np.ndarray, np.ndarray] | None,
     ) -> NLPSolution:
-        """The rebuilt plan, certified by the last round's certificates (their values at the
-        rebuilt positions are lower bounds on the distances, so a plan they clear is clear),
-        or by the best certificates of the rebuilt plan if those do not clear it."""
-        s, lay = self.settings, self.problem.layout
-        X, U = self.rebuild(np.asarray(params["x0"], float), x.take(lay.U))
-        own = X[s.model.position_rows, s.first_constrained_step:]
-        copies = pinned if pinned is not None else x.take(lay.C)
-        offsets = own[None] - copies
-        final = self.certify.rows_at(own, offsets, pairs[0], lin.pair_lam, lin.obstacle_lam)
-        violation = self.violation(X, final, params)
-        if violation > 0.0:
-            final = self.certify.best(own, offsets, *pairs)
-            violation = self.violation(X, final, params)
-        blocks = self._blocks(X, U, copies, final)
+        """The answer of the loop's plan ``x`` and certificates ``lin``: the rebuilt plan as
+        :meth:`PlanCheck.certified` certifies it, its cost, and the solution vector of ``x`` and
+        ``lin`` (whose rows are kept for a call that starts from it)."""
+        X, U, copies, final, violation = self.check.certified(params, x, lin, pinned, delta)
+        blocks = self.layout.blocks(X, U, copies, final)
         status = "solved" if converged else "max_rounds"
         if violation > 0.0:
             status = f"unsafe_{violation:.1e}"
         stacked = None if targets is None else (np.ascontiguousarray(copies, float), *targets)
+        vector = self.layout.vector(x, lin)
+        self._carry(vector, delta, pinned, lin)  # lin: the rows of the vector's certificates at x
         return NLPSolution(
-            x=blocks, x_vec=np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]]),
-            lam_x=np.zeros(0), lam_g=y, cost=stacked_objective(blocks, params, s, stacked),
+            x=blocks, x_vec=vector,
+            lam_x=np.zeros(0), lam_g=y, cost=stacked_objective(blocks, params, self.settings, stacked),
             success=violation <= 0.0, status=status,
             iterations=rounds, solve_time=wall,
         )
-
-    def _blocks(self, X: np.ndarray, U: np.ndarray, copies: np.ndarray, lin: Linearisation) -> dict[str, np.ndarray]:
-        """The NLP's named blocks: plan, copies, certificates and the least slacks they need."""
-        s = self.settings
-        blocks: dict[str, np.ndarray] = {"X": X, "U": U}
-        soft = self.shape.pair_collision == "soft"
-        for c, (C, L, A) in enumerate(self._block_keys):
-            blocks[C] = copies[c]
-            blocks[L] = lin.pair_lam[c]
-            if soft:
-                blocks[A] = np.maximum(s.d_min - lin.pair_value[c], 0.0)[None, :]
-        for o, lam in enumerate(lin.obstacle_lam):
-            blocks[f"L_o{o}"] = lam
-            if s.collision == "soft":
-                blocks[f"A_o{o}"] = np.maximum(s.d_min - lin.obstacle_value[o], 0.0)[None, :]
-        return blocks
-
-    def violation(self, X: np.ndarray, lin: Linearisation, params: dict[str, Any]) -> float:
-        """Largest shortfall of a plan against the hard claims (0 when all hold): separations
-        (>= d_min) by the values of dual-feasible certificates (lower bounds on the distances),
-        planes, workspace and speed by direct evaluation. Inputs are within their box and the
-        states follow the dynamics by construction (:meth:`rebuild`)."""
-        s, first = self.settings, self.settings.first_constrained_step
-        gaps = [0.0]
-        if self.shape.pair_collision == "hard" and lin.pair_value.size:
-            gaps.append(float((s.d_min - lin.pair_value).max()))
-        if s.collision == "hard" and lin.obstacle_value.size:
-            gaps.append(float((s.d_min - lin.obstacle_value).max()))
-        own = X[s.model.position_rows, first:]
-        for p in range(self.shape.planes):
-            gaps.append(float(np.max(np.ravel(params[f"Hb{p}"]) - np.sum(np.asarray(params[f"Hn{p}"]) * own, axis=0))))
-        if self._workspace is not None:
-            gaps += [float((self._workspace[0] - own).max()), float((own - self._workspace[1]).max())]
-        if s.speed is not None:
-            gaps.append(float(np.linalg.norm(s.model.velocity(X[:, 1:].T), axis=1).max()) - s.speed)
-        return max(gaps)
 
 
 class QPLocalLadder:
@@ -1346,7 +1484,7 @@ class QPLocalLadder:
             shape = LocalShape(copies, planes, pinned is not None, self.pair_collision)
             stepper = self.stepper(shape)
             if isinstance(guess, np.ndarray) and guess.size != stepper.vector_size:
-                guess = self._layout_of(shape, guess).blocks_of(guess, params)
+                guess = self._layout_of(shape, guess).layout.blocks_of(guess, params)
             y = duals[1] if duals is not None and duals[1].size == stepper.problem.A.shape[0] else None
             return stepper.solve(params, guess, pinned, caps, y, restarts=restarts, rounds=rounds)
 
@@ -1389,14 +1527,14 @@ class QPLocalLadder:
             return guess
         with self._lock:
             stepper = self._layout_of(LocalShape(copies, planes, pinned, self.pair_collision), guess)
-            return stepper.blocks_of(guess, params)
+            return stepper.layout.blocks_of(guess, params)
 
     def solution_vector(
         self, blocks: dict[str, np.ndarray], params: dict[str, Any], *, copies: int, planes: int = 0,
         pinned: bool = False,
     ) -> np.ndarray:
         """A solution vector of this ladder's problem from the named blocks of another solver's
-        answer (see :meth:`SequentialLocalQP.vector_of`), to be passed back as a later guess."""
+        answer (see :meth:`SolutionLayout.vector_of`), to be passed back as a later guess."""
         with self._lock:
             stepper = self.stepper(LocalShape(copies, planes, pinned, self.pair_collision))
-            return stepper.vector_of(blocks, params["delta"])
+            return stepper.layout.vector_of(blocks, params["delta"])
