@@ -136,3 +136,43 @@ def test_step_fields_travel_once_and_arrive_intact():
         assert set(again) == set(STEP_FIELDS)  # an identical repeat sends no step field
 
     check()
+
+
+def test_problems_built_on_executor_threads_are_built_one_at_a_time(meeting_point, monkeypatch):
+    """CasADi's symbolic layer is not thread-safe: agents that build their local problems on a
+    thread pool build them under one process-wide lock."""
+    import threading
+    import time
+
+    from swarmpc.formulation import footprint_local, footprint_ocp, nlp, ocp
+    from swarmpc.solvers import footprint_qp
+
+    built, nlpsol = [], nlp.ca.nlpsol
+
+    def recording(*args, **kwargs):
+        built.append((threading.current_thread() is threading.main_thread(), nlp.CASADI_CONSTRUCTION._is_owned()))
+        return nlpsol(*args, **kwargs)
+
+    monkeypatch.setattr(nlp.ca, "nlpsol", recording)
+    two_steps(ThreadExecutor(workers=2), meeting_point)
+    assert any(not main for main, _ in built)  # some were built on the pool's threads
+    assert all(owned for _, owned in built)
+    for builder in (ocp.build_local, ocp.build_centralized, footprint_local.build_footprint_local,
+                    footprint_ocp.build_footprint_centralized, footprint_qp._Dynamics.__init__):
+        assert hasattr(builder, "__wrapped__"), builder.__name__
+
+    spans = []
+
+    @nlp.builds_casadi
+    def slow_build():
+        began = time.perf_counter()
+        time.sleep(0.05)
+        spans.append((began, time.perf_counter()))
+
+    threads = [threading.Thread(target=slow_build) for _ in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    spans.sort()
+    assert all(later[0] >= earlier[1] for earlier, later in zip(spans, spans[1:]))  # never two at once

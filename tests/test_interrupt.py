@@ -22,6 +22,17 @@ def _like_a_terminal() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+def _wait_for_staging(folder, process: subprocess.Popen, timeout_s: float = 120.0) -> None:
+    """Wait until the run has reserved its staging folder in ``folder`` (a loaded machine may
+    take many seconds to import the numerical stack; a signal before the loop has begun ends the
+    run with no step to write)."""
+    deadline = time.monotonic() + timeout_s
+    while not any(folder.glob(".run.partial-*")):
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "the run reserved no staging folder"
+        time.sleep(0.05)
+
+
 @pytest.mark.parametrize("sig, executor", [
     (signal.SIGINT, "serial"), pytest.param(signal.SIGTERM, "serial", marks=pytest.mark.loop),
     pytest.param(signal.SIGTERM, "process", marks=pytest.mark.loop),
@@ -40,7 +51,8 @@ def test_a_signal_gives_a_complete_interrupted_folder(tmp_path, sig, executor):
          "--max-steps", "100000", "--out", str(out), "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_like_a_terminal,
     )
-    time.sleep({"serial": 6.0, "process": 8.0, "ray": 14.0}[executor])  # imports, start-up and some steps
+    _wait_for_staging(tmp_path, process)  # imports done, the run folder reserved: the loop is next
+    time.sleep({"serial": 3.0, "process": 5.0, "ray": 10.0}[executor])  # start-up and some steps
     assert process.poll() is None, process.communicate()
     process.send_signal(sig)
     _stdout, stderr = process.communicate(timeout=120)

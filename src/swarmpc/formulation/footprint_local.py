@@ -32,7 +32,7 @@ import numpy as np
 
 from swarmpc.formulation.footprint_certificates import footprint_pair_rows
 from swarmpc.formulation.footprint_ocp import FootprintAgent, _add_car, _impose, _slack
-from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder
+from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder, builds_casadi
 from swarmpc.formulation.ocp import WARM_START_OPTIONS, add_agent, add_pair_avoidance, ipopt_options
 
 __all__ = ["NeighbourKind", "block_rows", "build_footprint_local", "consensus_block", "pair_first_step", "slot_size"]
@@ -100,6 +100,7 @@ def _add_slot(
     _impose(builder, f"p{slot}", pair, slack, s.kappa)
 
 
+@builds_casadi
 def build_footprint_local(
     own: FootprintAgent, neighbours: Sequence[NeighbourKind], options: dict[str, Any] | None = None,
     owner_weight: float = 1.0,

@@ -66,7 +66,7 @@ from swarmpc.formulation.footprint_certificates import (
     footprint_polytope_rows,
     rectangle_pair_certificates,
 )
-from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder
+from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder, builds_casadi
 from swarmpc.formulation.ocp import (
     OCPSettings,
     add_agent,
@@ -285,6 +285,7 @@ def _add_footprint_pair(
     _impose(builder, tag, rows, slack, s.kappa)
 
 
+@builds_casadi
 def build_footprint_centralized(swarm: FootprintSwarm, options: dict[str, Any] | None = None) -> CompiledNLP:
     """The global OCP of ``swarm`` (the rows and names of the module docstring), built once.
 

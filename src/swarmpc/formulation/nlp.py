@@ -7,14 +7,40 @@ warm-start the next solve. The solver is built once; every later call only chang
 
 from __future__ import annotations
 
+import functools
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import casadi as ca
 import numpy as np
 
 Arrays = dict[str, np.ndarray]
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+CASADI_CONSTRUCTION = threading.RLock()
+"""Held while CasADi expressions and functions are built (:func:`builds_casadi`).
+
+CasADi's symbolic layer is not thread-safe: its expression nodes are reference-counted without
+atomics, and two threads building problems at once can abort the process (seen with the thread
+executor, whose agents build their local problems on first use, two at a time). It is the one
+piece of process-wide state here because the library's is: any thread of the process may build.
+Evaluating built functions needs no lock."""
+
+
+def builds_casadi(build: Callable[_P, _R]) -> Callable[_P, _R]:
+    """``build`` run under :data:`CASADI_CONSTRUCTION` (one thread of the process at a time)."""
+
+    @functools.wraps(build)
+    def serialised(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        with CASADI_CONSTRUCTION:
+            return build(*args, **kwargs)
+
+    return serialised
 
 
 @dataclass(frozen=True)

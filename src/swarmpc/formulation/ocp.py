@@ -37,7 +37,7 @@ import casadi as ca
 import numpy as np
 
 from swarmpc.config import IpoptOptions, QPOptions, Scenario
-from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder
+from swarmpc.formulation.nlp import CompiledNLP, ProblemBuilder, builds_casadi
 from swarmpc.model.agent_model import AgentModel, make_model
 from swarmpc.model.geometry import inflate_polytope
 
@@ -296,6 +296,7 @@ def agent_pairs(num_agents: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(num_agents) for j in range(i + 1, num_agents)]
 
 
+@builds_casadi
 def build_centralized(
     s: OCPSettings, num_agents: int, options: dict[str, Any] | None = None, bodies: np.ndarray | None = None,
 ) -> CompiledNLP:
@@ -318,6 +319,7 @@ def build_centralized(
     return builder.build(f"central_{num_agents}", "ipopt", {**ipopt_options(s.ipopt), **(options or {})})
 
 
+@builds_casadi
 def build_local(
     s: OCPSettings, num_copies: int, dynamic_copies: bool = False, options: dict[str, Any] | None = None,
     plugin: str = "ipopt", warm_start: bool = False, pair_collision: str | None = None, num_planes: int = 0,

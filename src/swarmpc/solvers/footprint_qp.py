@@ -68,7 +68,7 @@ import scipy.sparse as sp
 from swarmpc.formulation.footprint_certificates import best_direction
 from swarmpc.formulation.footprint_local import NeighbourKind, block_rows, consensus_block
 from swarmpc.formulation.footprint_ocp import FootprintAgent
-from swarmpc.formulation.nlp import NLPSolution
+from swarmpc.formulation.nlp import NLPSolution, builds_casadi
 from swarmpc.model.footprint import (
     polygon_vertices,
     rectangle_distance,
@@ -207,6 +207,7 @@ class _Dynamics:
     """The model's step f(x, u) and its Jacobians as CasADi functions, evaluated N at a time; and
     the pose map of the agent's consensus block with its Jacobian."""
 
+    @builds_casadi
     def __init__(self, own: FootprintAgent) -> None:
         s = own.settings
         n, m, N = s.model.state_dim, s.model.input_dim, s.horizon
