@@ -143,6 +143,7 @@ def test_problems_built_on_executor_threads_are_built_one_at_a_time(meeting_poin
     thread pool build them under one process-wide lock."""
     import threading
     import time
+    from itertools import pairwise
 
     from swarmpc.formulation import footprint_local, footprint_ocp, nlp, ocp
     from swarmpc.solvers import footprint_qp
@@ -175,4 +176,4 @@ def test_problems_built_on_executor_threads_are_built_one_at_a_time(meeting_poin
     for thread in threads:
         thread.join()
     spans.sort()
-    assert all(later[0] >= earlier[1] for earlier, later in zip(spans, spans[1:]))  # never two at once
+    assert all(later[0] >= earlier[1] for earlier, later in pairwise(spans))  # never two at once

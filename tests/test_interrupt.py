@@ -42,10 +42,12 @@ def test_a_signal_gives_a_complete_interrupted_folder(tmp_path, sig, executor):
     """SIGINT and SIGTERM end the loop after the step; the interrupted run is written whole, no
     staging folder is left, and worker processes end quietly. The run is paper-2d with a goal
     tolerance no agent meets, so it is still running whenever the signal comes (a fast machine
-    flies the whole of paper-2d within the start-up wait)."""
+    flies the whole of paper-2d within the start-up wait): the agents are pushed by process noise,
+    or the QP local step would bring them to rest exactly on their goals."""
     out = tmp_path / "run"
     endless = tmp_path / "endless.yaml"
-    endless.write_text(scenario_to_yaml(builtin_scenario("paper-2d").with_updates(**{"stop.goal_tolerance": 1e-9})))
+    endless.write_text(scenario_to_yaml(builtin_scenario("paper-2d").with_updates(
+        **{"stop.goal_tolerance": 1e-9, "disturbance.process_position_std": 1e-3})))
     process = subprocess.Popen(
         [sys.executable, "-m", "swarmpc", "run", str(endless), "--executor", executor,
          "--max-steps", "100000", "--out", str(out), "--quiet"],

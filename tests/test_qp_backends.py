@@ -205,3 +205,38 @@ def test_a_repair_call_answered_by_piqp_keeps_clear_and_matches_osqp(dim):
         assert clearance(s, answer.x["X"], pinned["C0"]) >= s.d_min
         plans.append(answer.x["X"])
     np.testing.assert_allclose(plans[1], plans[0], atol=1e-3)
+
+
+def test_a_ctrl_c_during_an_osqp_solve_reaches_the_program_and_the_qp_is_still_solved() -> None:
+    """OSQP holds SIGINT for itself while it solves (it stops, status "interrupted"): the backend
+    hands the signal back to the program's handler and solves again, so Ctrl-C is never lost and
+    no answer reads "interrupted". The signals are sent from another thread every 37 ms while
+    the main thread solves a QP large enough that most of them land inside a solve."""
+    import os
+    import signal
+    import threading
+    import time
+
+    P, q, A, lower, upper = random_qp(0, 120, 10, 200)
+    backend = OSQPBackend(QPLocalOptions(eps_abs=1e-10, eps_rel=1e-10, max_iter=100_000, polish=False))
+    backend.setup(P, q, A, lower, upper)
+    zero_x, zero_y = np.zeros(P.shape[0]), np.zeros(A.shape[0])
+    sent, received, answers = 12, [], []
+
+    def interrupter() -> None:
+        for _ in range(sent):
+            time.sleep(0.037)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    previous = signal.signal(signal.SIGINT, lambda *_: received.append(1))
+    try:
+        thread = threading.Thread(target=interrupter)
+        thread.start()
+        while thread.is_alive():
+            answers.append(backend.solve(zero_x, zero_y))  # cold each time: every solve takes a while
+        thread.join()
+        time.sleep(0.05)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert len(received) == sent
+    assert all(a.solved and a.status == "solved" for a in answers)

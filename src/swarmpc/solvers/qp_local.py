@@ -70,11 +70,12 @@ starts and answers between the two layouts).
 from __future__ import annotations
 
 import itertools
+import signal
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -654,6 +655,7 @@ class OSQPBackend:
         self._core: Any = None
         """OSQP's compiled solver object, called directly where the interface has one."""
         self._infinity = np.inf
+        self._sigint_flag: Callable[[], int] | None = None
 
     def setup(self, P: sp.csc_matrix, q: np.ndarray, A: sp.csc_matrix, lower: np.ndarray,
               upper: np.ndarray) -> None:
@@ -667,6 +669,7 @@ class OSQPBackend:
                            check_dualgap=o.check_dualgap)
         self._core = getattr(self._solver, "_solver", None)
         self._infinity = float(self._solver.constant("OSQP_INFTY"))
+        self._sigint_flag = osqp_sigint_flag()
 
     def update(self, q: np.ndarray, lower: np.ndarray, upper: np.ndarray, P_data: np.ndarray | None,
                A_data: np.ndarray | None) -> None:
@@ -683,15 +686,14 @@ class OSQPBackend:
             self._core.update_data_mat(P_x=P_data, P_i=None, A_x=A_data, A_i=None)
 
     def solve(self, x: np.ndarray, y: np.ndarray | None) -> QPAnswer:
-        start = self._core if self._core is not None else self._solver  # the interface only passes it on
-        start.warm_start(x, y if y is not None else np.zeros(self._solver.m))
-        if self._core is None:
-            result = self._solver.solve(raise_error=False)
-            info, primal, dual = result.info, result.x, result.y
-        else:  # the interface's solve copies every field of the info into a namespace first
-            self._core.solve()
-            info, solution = self._core.info, self._core.solution
-            primal, dual = solution.x, solution.y
+        info, primal, dual = self._solve_once(x, y)
+        while self._took_sigint(info):
+            # OSQP takes SIGINT for itself while it solves (and stops, if it notices in time): the
+            # Ctrl-C was meant for the program, which gets it back; a stopped QP is solved again
+            signal.raise_signal(signal.SIGINT)
+            if info.status != OSQP_INTERRUPTED:
+                break
+            info, primal, dual = self._solve_once(x, y)
         if primal is None or primal[0] is None:  # infeasible: no primal point
             return QPAnswer(x, np.zeros(self._solver.m), False, str(info.status), int(info.iter),
                             float(info.solve_time + info.update_time))
@@ -702,6 +704,44 @@ class OSQPBackend:
             solver_time=float(info.solve_time + info.polish_time + info.update_time), exact=info.status_polish == 1,
         )
 
+
+    def _took_sigint(self, info: Any) -> bool:
+        """Whether a SIGINT reached OSQP's own handler during the last solve: its flag, read from
+        the extension (a signal during polishing does not stop the solve, so the status alone
+        would miss it), else the status."""
+        if self._sigint_flag is None:
+            return bool(info.status == OSQP_INTERRUPTED)
+        return bool(self._sigint_flag())
+
+    def _solve_once(self, x: np.ndarray, y: np.ndarray | None) -> tuple[Any, Any, Any]:
+        """(info, primal, dual) of one solve from the start (x, y)."""
+        start = self._core if self._core is not None else self._solver  # the interface only passes it on
+        start.warm_start(x, y if y is not None else np.zeros(self._solver.m))
+        if self._core is None:
+            result = self._solver.solve(raise_error=False)
+            return result.info, result.x, result.y
+        self._core.solve()  # the interface's solve copies every field of the info into a namespace first
+        solution = self._core.solution
+        return self._core.info, solution.x, solution.y
+
+
+OSQP_INTERRUPTED = "interrupted"
+"""OSQP's status of a solve a SIGINT stopped (its own handler holds SIGINT while it solves)."""
+
+
+def osqp_sigint_flag() -> Callable[[], int] | None:
+    """OSQP's ``osqp_is_interrupted`` (nonzero when its handler caught a SIGINT during the last
+    solve; reset when a solve begins), from the loaded extension; None where it is not exported."""
+    import ctypes
+
+    from osqp import ext_builtin
+
+    try:
+        flag = ctypes.CDLL(ext_builtin.__file__).osqp_is_interrupted
+    except (OSError, AttributeError):
+        return None
+    flag.restype, flag.argtypes = ctypes.c_int, []
+    return cast(Callable[[], int], flag)
 
 PIQP_STATUS = {"PIQP_SOLVED": "solved", "PIQP_MAX_ITER_REACHED": "maximum iterations reached",
                "PIQP_PRIMAL_INFEASIBLE": "primal infeasible", "PIQP_DUAL_INFEASIBLE": "dual infeasible",
