@@ -157,3 +157,26 @@ def test_a_refreshed_plan_replaces_the_committed_one_only_where_it_keeps_every_p
     assert coupled.neighbours[0] == (1,) and coupled.neighbours[1] == (0,)
     assert (refreshed[0] is not committed[0]) is accepted
     assert all(refreshed[i] is chosen[i] for i in range(1, M))
+
+
+def test_the_replanner_charges_every_replan_to_its_agent():
+    """The safety passes' compute is what the agents spent on every re-plan asked (a retry and an
+    answer not taken count too), not only on the answers that stand at the end."""
+    from swarmpc.solvers.admm.messages import TimedResult
+
+    states = np.zeros((M, 2 * S.dim))
+    requests = StepRequests(S, ADMMConfig(), BODIES, states, states, np.zeros((M, S.horizon + 1, 2 * S.dim)))
+    no_planes = tuple(MappingProxyType({}) for _ in range(M))
+    graph = CouplingGraph(~np.eye(M, dtype=bool), ((1,), (0,), (3,), (2,)), no_planes)
+    plans = [result(i, np.zeros((K, S.dim))) for i in range(M)]
+
+    def answers(asked):
+        return [TimedResult(**{**vars(result(r.agent, np.zeros((K, S.dim)), fallback=r.agent == 1))},
+                            call_time=0.25 + r.agent) for r in asked]
+
+    replan = Replanner(requests, answers)
+    z = np.zeros((M, S.dim, K))
+    replan([0, 2], graph, z, 10.0, plans, [False, False])
+    replan([0, 1], graph, z, 10.0, plans, [False, True])  # agent 0 again, agent 1 fails
+    assert replan.spent.tolist() == [0.5, 1.25, 2.25, 0.0]
+    assert replan.failed == 1

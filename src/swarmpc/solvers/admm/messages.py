@@ -7,7 +7,7 @@ solutions stay inside the agent.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -121,14 +121,6 @@ def compute_time(result: LocalResult) -> float:
     """Seconds of the agent's compute behind ``result``: its whole local step where the agent
     measured it (:attr:`TimedResult.call_time`), else its solver calls (``solve_time``)."""
     return float(getattr(result, "call_time", result.solve_time))
-
-
-def timed_as(result: LocalResult, answer: LocalResult) -> LocalResult:
-    """``result`` carrying the compute of ``answer`` (a re-plan whose answer was not taken)."""
-    if isinstance(answer, TimedResult):
-        fields_of = {f.name: getattr(result, f.name) for f in fields(LocalResult)}
-        return TimedResult(**{**fields_of, "solve_time": answer.solve_time}, call_time=answer.call_time)
-    return replace(result, solve_time=answer.solve_time)
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import numpy as np
 from swarmpc.formulation.ocp import OCPSettings
 from swarmpc.solvers.admm.clock import BatchBudget
 from swarmpc.solvers.admm.graph import CouplingGraph
-from swarmpc.solvers.admm.messages import LocalResult, StepRequests, compute_time
+from swarmpc.solvers.admm.messages import LocalResult, StepRequests
 from swarmpc.solvers.admm.replan import Replanner, Solve
 from swarmpc.solvers.admm.safety import SafetyChecks
 from swarmpc.solvers.admm.schedule import LevelSchedule, colour_order
@@ -38,19 +38,9 @@ class SafePlans:
     results: list[LocalResult]
     graph: CouplingGraph
     agent_times: np.ndarray
-    """(M,) solve time per agent of the passes' new answers."""
+    """(M,) each agent's compute on the passes' re-plans."""
     failures: int
-    """Failed solves among the passes' new answers."""
-
-
-def new_solves(
-    results: Sequence[LocalResult], previous: Sequence[LocalResult], every: bool = False,
-) -> tuple[np.ndarray, int]:
-    """Solve time per agent and failed solves of the answers a repair pass produced (those not
-    carried over from ``previous``; ``every``: all of them)."""
-    new = [every or r is not old for r, old in zip(results, previous, strict=True)]
-    times = np.array([compute_time(r) if fresh else 0.0 for r, fresh in zip(results, new, strict=True)])
-    return times, sum(fresh and not r.success for r, fresh in zip(results, new, strict=True))
+    """Failed re-plans of the passes."""
 
 
 def committed_plans(
@@ -109,27 +99,16 @@ class Repair:
         agents planned against), and the selection pass over its plans; the refreshing re-plans
         are asked on the same budget. Last, with
         ``stranded_check``, the settling pass (:class:`~swarmpc.solvers.admm.settle.Settle`)."""
-        times, failures = np.zeros(len(results)), 0
         states = self.requests.states
         agents: list[int] | None = None  # None: the full pass
         rounds = self.requests.config.repair_rounds
         if repair_all and committed is not None and self.budget is not None:
-            previous = results
             results = self.sequential(graph, z, rho, results, budget=self.budget)
-            new, failed = new_solves(results, previous)
-            times, failures = times + new, failures + failed
         if repair_all and committed is not None:
-            previous = results
             results, graph, left = self.selection(graph, z, rho, results, committed, waiting)
-            new, failed = new_solves(results, previous)
-            times, failures = times + new, failures + failed
             repair_all, graph, agents = bool(left), graph.coupled(left), _agents_of(left)
         for round_ in range(rounds if repair_all else 0):
-            previous = results
             results = self.sequential(graph, z, rho, results, agents)
-            # later passes count only the agents they re-solved
-            new, failed = new_solves(results, previous, every=round_ == 0 and agents is None)
-            times, failures = times + new, failures + failed
             # the repair only re-plans against neighbours: couple any candidate pair whose
             # repaired plans now conflict and repair again
             missing = self.safety.missing(results, graph, self.safety.checked_pairs(graph.candidates, states, results))
@@ -140,13 +119,10 @@ class Repair:
         stranded = self.safety.stranded_fallbacks(results) if stranded_check else []
         if stranded:
             graph = graph.coupled(stranded)
-            previous = results
             results = self.sequential(graph, z, rho, results, agents=sorted({i for i, _ in stranded}))
-            new, failed = new_solves(results, previous)
-            times, failures = times + new, failures + failed
         if stranded_check:
             results = self.settle(results)
-        return SafePlans(results, graph, times, failures)
+        return SafePlans(results, graph, self.replan.spent.copy(), self.replan.failed)
 
     def sequential(
         self, graph: CouplingGraph, z: np.ndarray, rho: float, results: list[LocalResult],

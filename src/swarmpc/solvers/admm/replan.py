@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 
 from swarmpc.solvers.admm.graph import CouplingGraph
-from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests
+from swarmpc.solvers.admm.messages import LocalRequest, LocalResult, StepRequests, compute_time
 
 Solve = Callable[[list[LocalRequest]], list[LocalResult]]
 """The agents' answers to a batch of requests (timed on the step's critical path)."""
@@ -19,6 +19,11 @@ class Replanner:
     def __init__(self, requests: StepRequests, solve: Solve) -> None:
         self.requests = requests
         self.solve = solve
+        self.spent = np.zeros(len(requests.states))
+        """(M,) the agents' compute on every re-plan asked so far (retries and answers not taken
+        count too: the agent spent it)."""
+        self.failed = 0
+        """Re-plans asked so far whose solves failed."""
 
     def __call__(
         self, agents: list[int], graph: CouplingGraph, z: np.ndarray, rho: float, plans: list[LocalResult],
@@ -37,4 +42,8 @@ class Replanner:
             own_z[i] = s.model.position(plans[i].states[s.first_constrained_step:]).T
             requests.append(self.requests.request(i, graph, own_z, rho, rho, False, pinned, rescue=last_attempt,
                                                   quick=quick))
-        return self.solve(requests)
+        answers = self.solve(requests)
+        for answer in answers:
+            self.spent[answer.agent] += compute_time(answer)
+            self.failed += not answer.success
+        return answers

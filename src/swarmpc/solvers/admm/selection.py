@@ -6,12 +6,13 @@ from __future__ import annotations
 
 from collections import Counter, deque
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
 from swarmpc.solvers.admm.clock import BatchBudget
 from swarmpc.solvers.admm.graph import CouplingGraph
-from swarmpc.solvers.admm.messages import LocalResult, StepRequests, timed_as
+from swarmpc.solvers.admm.messages import LocalResult, StepRequests
 from swarmpc.solvers.admm.replan import Replanner
 from swarmpc.solvers.admm.safety import SafetyChecks
 from swarmpc.solvers.admm.schedule import independent_run
@@ -177,7 +178,7 @@ class Selection:
                 if answer.success:
                     repaired[i] = answer
                     continue
-                repaired[i] = timed_as(results[i], answer)
+                repaired[i] = replace(results[i], solve_time=answer.solve_time)
                 pending.extend(j for pair in clashing if i in pair for j in pair
                                if j not in asked and j not in pending)
         return repaired
