@@ -59,8 +59,25 @@ def test_meeting_point_needs_several_iterations(serial_plans):
 
 @pytest.mark.parametrize("make", [lambda: ThreadExecutor(workers=2), lambda: ProcessExecutor(workers=2)],
                          ids=["thread", "process"])
-def test_executor_matches_serial(make, serial_plans, meeting_point):
-    assert_same_plans(serial_plans, two_steps(make(), meeting_point))
+def test_executor_matches_serial(make, serial_plans, meeting_point, monkeypatch):
+    """The same plans as the serial executor; agents on a thread pool build their CasADi problems
+    one at a time (CasADi's symbolic layer is not thread-safe)."""
+    import threading
+
+    from swarmpc.formulation import nlp
+
+    built, nlpsol = [], nlp.ca.nlpsol
+
+    def recording(*args, **kwargs):
+        built.append((threading.current_thread() is threading.main_thread(), nlp.CASADI_CONSTRUCTION._is_owned()))
+        return nlpsol(*args, **kwargs)
+
+    monkeypatch.setattr(nlp.ca, "nlpsol", recording)
+    executor = make()
+    assert_same_plans(serial_plans, two_steps(executor, meeting_point))
+    if isinstance(executor, ThreadExecutor):  # built in this process, some on the pool's threads
+        assert any(not main for main, _ in built)
+        assert all(owned for _, owned in built)
 
 
 def test_ray_executor_matches_serial(serial_plans, meeting_point):
@@ -138,9 +155,9 @@ def test_step_fields_travel_once_and_arrive_intact():
     check()
 
 
-def test_problems_built_on_executor_threads_are_built_one_at_a_time(meeting_point, monkeypatch):
-    """CasADi's symbolic layer is not thread-safe: agents that build their local problems on a
-    thread pool build them under one process-wide lock."""
+def test_problems_are_built_one_at_a_time():
+    """Every CasADi builder an executor's thread may run holds the one construction lock, and the
+    lock lets one build run at a time (the thread executor's own check is in the test above)."""
     import threading
     import time
     from itertools import pairwise
@@ -148,16 +165,6 @@ def test_problems_built_on_executor_threads_are_built_one_at_a_time(meeting_poin
     from swarmpc.formulation import footprint_local, footprint_ocp, nlp, ocp
     from swarmpc.solvers import footprint_qp
 
-    built, nlpsol = [], nlp.ca.nlpsol
-
-    def recording(*args, **kwargs):
-        built.append((threading.current_thread() is threading.main_thread(), nlp.CASADI_CONSTRUCTION._is_owned()))
-        return nlpsol(*args, **kwargs)
-
-    monkeypatch.setattr(nlp.ca, "nlpsol", recording)
-    two_steps(ThreadExecutor(workers=2), meeting_point)
-    assert any(not main for main, _ in built)  # some were built on the pool's threads
-    assert all(owned for _, owned in built)
     for builder in (ocp.build_local, ocp.build_centralized, footprint_local.build_footprint_local,
                     footprint_ocp.build_footprint_centralized, footprint_qp._Dynamics.__init__):
         assert hasattr(builder, "__wrapped__"), builder.__name__
