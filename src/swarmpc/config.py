@@ -1220,17 +1220,14 @@ class Scenario(_Frozen):
     @model_validator(mode="before")
     @classmethod
     def _local_step_of_the_agents(cls, data: Any) -> Any:
-        """``solver.local`` left out: :func:`default_local` of the agents and the copies (qp, or
-        ipopt with cars)."""
+        """``solver.local`` left out: :func:`default_local` with cars (what it is without them,
+        :class:`SolverConfig` resolves from the copies alone)."""
         if not isinstance(data, dict) or not _names_a_car(data.get("agents")):
             return data
-        solver = data.get("solver")
+        solver, local = data.get("solver"), default_local(has_cars=True)
         if solver is None or (isinstance(solver, dict) and "local" not in solver):
-            admm = (solver or {}).get("admm")
-            local = default_local(has_cars=True, dynamic_copies=_dynamic_copies(admm))
             return {**data, "solver": {**(solver or {}), "local": local}}
         if isinstance(solver, SolverConfig) and "local" not in solver.model_fields_set:
-            local = default_local(has_cars=True, dynamic_copies=solver.admm.dynamic_copies)
             return {**data, "solver": solver.model_copy(update={"local": local})}
         return data
 

@@ -704,7 +704,6 @@ class OSQPBackend:
             solver_time=float(info.solve_time + info.polish_time + info.update_time), exact=info.status_polish == 1,
         )
 
-
     def _took_sigint(self, info: Any) -> bool:
         """Whether a SIGINT reached OSQP's own handler during the last solve: its flag, read from
         the extension (a signal during polishing does not stop the solve, so the status alone
@@ -742,6 +741,7 @@ def osqp_sigint_flag() -> Callable[[], int] | None:
         return None
     flag.restype, flag.argtypes = ctypes.c_int, []
     return cast(Callable[[], int], flag)
+
 
 PIQP_STATUS = {"PIQP_SOLVED": "solved", "PIQP_MAX_ITER_REACHED": "maximum iterations reached",
                "PIQP_PRIMAL_INFEASIBLE": "primal infeasible", "PIQP_DUAL_INFEASIBLE": "dual infeasible",
@@ -1103,7 +1103,7 @@ class SolutionLayout:
 
     def vector(self, x: np.ndarray, lin: Linearisation) -> np.ndarray:
         """The solution vector of primal ``x`` and the certificates of ``lin``."""
-        return np.concatenate([x, lin.pair_lam.ravel(), *[lam.ravel() for lam in lin.obstacle_lam]])
+        return np.concatenate([x, self.certify.pack(lin)])
 
     def unpack(self, vector: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
         """(primal vector, pair certificates (n, 2d, K), obstacle certificates) of a solution
@@ -1124,7 +1124,7 @@ class SolutionLayout:
             x[row] = np.ravel(blocks.get(f"A_o{o}", 0.0))
         copies = np.array([np.asarray(blocks[f"C{c}"], float) for c in range(self.shape.copies)])
         copies = copies.reshape(self.shape.copies, s.dim, s.num_constrained)
-        return np.concatenate([x, self.certify.pack(self.certify(x[lay.own], copies, delta))])
+        return self.vector(x, self.certify(x[lay.own], copies, delta))
 
     def blocks_of(self, vector: np.ndarray, params: dict[str, Any]) -> dict[str, np.ndarray]:
         """The named blocks of :func:`swarmpc.formulation.ocp.build_local`'s problem of a
