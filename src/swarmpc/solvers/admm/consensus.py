@@ -52,20 +52,55 @@ def carried_blocks(
     return [(stable[i], *(stable[j] for j in n)) for i, n in enumerate(neighbours)]
 
 
+@dataclass(frozen=True, eq=False)
+class Blocks:
+    """One iteration's consensus blocks as whole arrays, stacked once for the average and the
+    residual: every answer's own positions and every copy the answers hold, in the answers' order."""
+
+    own: np.ndarray
+    """(R, d, K) each answer's own positions."""
+    agents: np.ndarray
+    """(R,) the agent of each answer."""
+    copies: np.ndarray
+    """(C, d, K) the copies, answer by answer and slot by slot (:func:`held_copies`)."""
+    targets: np.ndarray
+    """(C,) the agent each copy copies."""
+    counts: np.ndarray
+    """(R,) how many copies each answer holds."""
+
+    @classmethod
+    def of(cls, results: Sequence[LocalResult], neighbours: Sequence[tuple[int, ...]]) -> Blocks:
+        copies, targets = held_copies(results, neighbours)
+        return cls(np.array([r.own for r in results]), np.array([r.agent for r in results], int), copies, targets,
+                   np.array([len(neighbours[r.agent]) for r in results], int))
+
+    def in_order(self, own: np.ndarray, copies: np.ndarray) -> np.ndarray:
+        """Per-block values (``own`` (R,), ``copies`` (C,)) in the blocks' order: each answer's own
+        block, then its copies."""
+        first = np.arange(len(own)) + np.concatenate(([0], np.cumsum(self.counts)[:-1])).astype(int)
+        ordered = np.empty(len(own) + len(copies))
+        rest = np.ones(len(ordered), bool)
+        rest[first] = False
+        ordered[first], ordered[rest] = own, copies
+        return ordered
+
+
 def average(
     results: Sequence[LocalResult], neighbours: Sequence[tuple[int, ...]], owner_weight: float,
-    relaxation: float, z_previous: np.ndarray | None = None,
+    relaxation: float, z_previous: np.ndarray | None = None, blocks: Blocks | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Consensus positions z (M, d, K) and the own-block weights (M,).
 
     z_j is the rho_b-weighted mean of every copy of agent j: its own plan (weight
     ``owner_weight``, or 1 for an agent nobody couples with, whose z is then its plan) and the
     copies its neighbours hold (weight 1), each over-relaxed towards ``z_previous`` when
-    ``relaxation`` is not 1 (an agent nobody couples with keeps its plan as z).
+    ``relaxation`` is not 1 (an agent nobody couples with keeps its plan as z). ``blocks``: the
+    answers stacked (:meth:`Blocks.of`), when the caller has them already.
     """
     alpha = relaxation
     previous = z_previous if alpha != 1.0 else None  # None: no over-relaxation
-    own = np.array([r.own for r in results])
+    stacked = blocks if blocks is not None else Blocks.of(results, neighbours)
+    own = stacked.own
     weights = np.array([owner_weight if n else 1.0 for n in neighbours])
     coupled = np.array([bool(n) for n in neighbours])
     relaxed_own = own
@@ -73,7 +108,7 @@ def average(
         relaxed_own = np.where(coupled[:, None, None], alpha * own + (1.0 - alpha) * previous, own)
     total = weights[:, None, None] * relaxed_own
     count = weights.copy()
-    copies, holders = held_copies(results, neighbours)
+    copies, holders = stacked.copies, stacked.targets
     if previous is not None:
         copies = alpha * copies + (1.0 - alpha) * previous[holders]
     # unbuffered adds in the copies' order: each z_j sums its copies as a loop over them would
@@ -96,17 +131,20 @@ def held_copies(
     return np.concatenate(blocks), np.array(targets, int)
 
 
-def primal_residual(results: Sequence[LocalResult], neighbours: Sequence[tuple[int, ...]], z: np.ndarray) -> float:
-    """RMS of v - z over every consensus block (own plans and copies)."""
+def primal_residual(
+    results: Sequence[LocalResult], neighbours: Sequence[tuple[int, ...]], z: np.ndarray, blocks: Blocks | None = None,
+) -> float:
+    """RMS of v - z over every consensus block (own plans and copies); ``blocks``: the answers
+    stacked (:meth:`Blocks.of`), when the caller has them already."""
     if not results:
         return 0.0
-    blocks = np.concatenate([np.concatenate([r.own[None], r.copies[: len(neighbours[r.agent])]]) for r in results])
-    agents = np.array([j for r in results for j in (r.agent, *neighbours[r.agent])], int)
-    per_block = np.sum((blocks - z[agents]) ** 2, axis=(1, 2))
+    b = blocks if blocks is not None else Blocks.of(results, neighbours)
+    own = np.sum((b.own - z[b.agents]) ** 2, axis=(1, 2))
+    copies = np.sum((b.copies - z[b.targets]) ** 2, axis=(1, 2))
     squared = 0.0
-    for value in per_block.tolist():  # summed block by block, in order, as the blocks come
+    for value in b.in_order(own, copies).tolist():  # summed block by block, in order, as the blocks come
         squared += value
-    return float(np.sqrt(squared / max(blocks.size, 1)))
+    return float(np.sqrt(squared / max(b.own.size + b.copies.size, 1)))
 
 
 def dual_residual(change: np.ndarray, weights: np.ndarray, neighbours: Sequence[tuple[int, ...]], rho: float) -> float:

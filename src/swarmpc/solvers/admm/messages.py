@@ -150,16 +150,16 @@ class StepRequests:
     applied: tuple[np.ndarray, np.ndarray] | None = None
     """States (M, N+1, n) and inputs (M, N, m) of the plans the last step applied (None: none
     yet): the committed plans of :class:`~swarmpc.solvers.admm.settle.Settle`."""
-    _shared: dict[tuple[int, tuple[int, ...]], tuple[list[int], np.ndarray, np.ndarray]] = field(
+    _shared: dict[tuple[int, tuple[int, ...]], tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=dict, init=False, repr=False)
-    """Agent and neighbours -> (the neighbours as a list, the pairs' Delta, the neighbours'
+    """Agent and neighbours -> (the neighbours as an index array, the pairs' Delta, the neighbours'
     states): what every request of the agent with those neighbours in this step shares, made
     once (the coordinator asks M requests per ADMM iteration)."""
 
-    def _neighbourhood(self, i: int, neighbours: tuple[int, ...]) -> tuple[list[int], np.ndarray, np.ndarray]:
+    def _neighbourhood(self, i: int, neighbours: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         key = (i, neighbours)
         if key not in self._shared:
-            index = list(neighbours)
+            index = np.array(neighbours, int)
             delta, states = self.bodies[i] + self.bodies[index], self.states[index]
             delta.flags.writeable = states.flags.writeable = False  # shared by the agent's requests
             self._shared[key] = (index, delta, states)
@@ -178,7 +178,7 @@ class StepRequests:
         normals, offsets = graph.planes_of(i)
         index, delta, neighbour_states = self._neighbourhood(i, neighbours)
         if plans is None:
-            z_neighbours = z[index]
+            z_neighbours = z.take(index, axis=0)
         else:
             z_neighbours = np.transpose(s.model.position(plans[0][:, s.first_constrained_step:]), (0, 2, 1))
         return LocalRequest(

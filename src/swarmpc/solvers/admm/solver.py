@@ -14,6 +14,7 @@ from swarmpc.solvers.admm.agent import LocalAgentFactory
 from swarmpc.solvers.admm.clock import BATCH_WINDOW, BatchBudget, StepClock, TimedAgentFactory
 from swarmpc.solvers.admm.config import ADMMConfig
 from swarmpc.solvers.admm.consensus import (
+    Blocks,
     Carryover,
     PenaltySchedule,
     Residuals,
@@ -249,8 +250,9 @@ class ADMMSolver:
             for r in results:
                 agent_times[r.agent] += compute_time(r)
             failures += sum(not r.success for r in results)
-            z_new, weights = average(results, graph.neighbours, cfg.owner_weight, cfg.relaxation, z)
-            r_norm = primal_residual(results, graph.neighbours, z_new)
+            blocks = Blocks.of(results, graph.neighbours)
+            z_new, weights = average(results, graph.neighbours, cfg.owner_weight, cfg.relaxation, z, blocks)
+            r_norm = primal_residual(results, graph.neighbours, z_new, blocks)
             s_norm = dual_residual(z_new - z, weights, graph.neighbours, penalty.rho)
             z = z_new
             converged = consensus_met(r_norm, s_norm, penalty.rho, cfg)
