@@ -545,6 +545,12 @@ class ADMMOptions(_Frozen):
         "last iteration, at the step's starting rho); null: `solver.tol`, as in the paper. `rho * tol` stops a step "
         "once the consensus moves less than `solver.tol` per iteration.",
     )
+    independent_first: bool = Field(
+        default=False,
+        description="Ask every agent first for its own optimum with no neighbour in it; when those plans keep every "
+        "pair that can meet d_min apart, they are the step's answer (the joint optimum, no consensus to reach) and "
+        "the step ends after that one round of local steps; else the ADMM iterations run as without it.",
+    )
     owner_weight: float = Field(
         default=5.0, gt=0,
         description="Weight of an agent's own block in the consensus: its penalty is rho times this, and the "

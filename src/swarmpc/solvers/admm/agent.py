@@ -140,9 +140,9 @@ class ConsensusMultipliers:
                 self.copies[j] = self.copies.get(j, 0.0) + rho * (previous - request.z_neighbours[slot])
 
     def parameters(self, request: LocalRequest) -> dict[str, np.ndarray]:
-        """The multiplier parameters of the local problem (``Y``, ``Y0``, ...); zero in a repair."""
+        """The multiplier parameters of the local problem (``Y``, ``Y0``, ...); zero in a repair and a probe."""
         zeros = np.zeros_like(request.z_own)
-        repair = request.repair
+        repair = request.repair or request.independent
         params = {"Y": self.own if self.own is not None and not repair else zeros}
         for slot, j in enumerate(request.neighbours):
             params[f"Y{slot}"] = zeros if repair else self.copies.get(j, zeros)
@@ -238,9 +238,15 @@ class LocalAgent:
         self._solution: NLPSolution | None = None
         """The last successful solve: the primal (and dual) start of the next one of the same shape."""
         self._plan: tuple[np.ndarray, np.ndarray] | None = None
+        self._probe: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        """The state and plan (states, inputs) of the last probe answered, until the next request."""
 
     def solve(self, request: LocalRequest) -> LocalResult:
-        """Multiplier update for the new consensus, then the local NLP (or the cached answer)."""
+        """Multiplier update for the new consensus, then the local NLP (or the cached answer); a
+        probe (:attr:`LocalRequest.independent`) by :meth:`_independent`."""
+        if request.independent:
+            return self._independent(request)
+        self._flown_probe(request)
         lone = self.cache.lone_answer(request)
         if lone is not None:
             return lone
@@ -263,6 +269,40 @@ class LocalAgent:
         result = self._answer(request, params, solution, same_shape)
         self.cache.remember(request, result, targets if solution.success and not request.repair else None)
         return result
+
+    def _independent(self, request: LocalRequest) -> LocalResult:
+        """The agent's own optimum with no neighbour in it, from the step's guess: a probe, solved
+        without touching its multipliers, its cached answer or its warm start, so that a step whose
+        probe is not taken iterates exactly as it would have without one. A failed probe answers
+        the fallback plan (marked so); the coordinator then iterates."""
+        s = self.settings
+        self._fallbacks, self._handover, self._quick = 0, request.handover, False
+        params = self._parameters(request)
+        solution = self._ladder_solve(self.nlp, params, self._start(request, False), None, copies=0, planes=0)
+        if solution.success:
+            states, inputs = solution.x["X"].T, solution.x["U"].T
+        else:
+            previous = self._plan if self._plan is not None else (None, None)
+            states, inputs = fallback_plan(request.state, previous[0], previous[1], s)
+        self._probe = (request.state, states, inputs) if solution.success else None
+        return LocalResult(
+            agent=self.agent, own=s.model.position(states[s.first_constrained_step:]).T.copy(),
+            copies=np.zeros((0, s.dim, s.num_constrained)), states=states, inputs=inputs, success=solution.success,
+            fallback=not solution.success, solve_time=solution.solve_time, max_slack=0.0, cost=solution.cost,
+            local_fallbacks=self._fallbacks,
+        )
+
+    def _flown_probe(self, request: LocalRequest) -> None:
+        """After a probe, the plan of the last step flown: the probe's when ``request`` starts from
+        another state (the coordinator took the probes as the step's answer), else the agent's own
+        (the iterations of the probe's step follow, from its state). An agent at rest, whose state
+        does not change, keeps its older plan, from which its fallback brakes in place."""
+        if self._probe is None:
+            return
+        state, states, inputs = self._probe
+        self._probe = None
+        if not np.array_equal(request.state, state):
+            self._plan = (states, inputs)
 
     def _parameters(self, request: LocalRequest) -> dict[str, Any]:
         """The local problem's parameter values for ``request``."""

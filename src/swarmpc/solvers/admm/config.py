@@ -77,6 +77,13 @@ class ADMMConfig:
     multipliers use alpha * v + (1 - alpha) * z_previous in place of each block's answer v.
     1: plain ADMM (the paper); the fixed points are the same for any alpha in (0, 2)
     (evidence: docs/lab/admm.md#over-relaxation)."""
+    independent_first: bool = False
+    """Before the iterations, ask every agent for its own optimum with no neighbour in it
+    (:attr:`~swarmpc.solvers.admm.messages.LocalRequest.independent`). When those plans keep every
+    pair that can meet d_min apart at every constrained step, the joint problem's pair constraints
+    are slack there, so the plans are its optimum and ADMM's fixed point (every consensus
+    multiplier zero): the step ends with them after one round of local steps. Otherwise the
+    iterations run exactly as without the probe, which only adds its round to the step."""
     reuse_tol: float = 1e-4
     """Within an MPC step, an agent whose consensus targets (z - gamma / rho_b, per block) all moved
     less than this [m] since its last solve, at the same penalty and neighbours, sends its last
@@ -151,6 +158,7 @@ class ADMMConfig:
             repair_rounds=admm.repair_rounds, stall_window=admm.stall_window, stall_rho_factor=admm.stall_rho_factor,
             rho_bounds=(admm.rho_min, admm.rho_max), carry_multipliers=admm.carry_multipliers,
             warm_start=admm.warm_start, deadline_repair=admm.deadline_repair, repair_order=admm.repair_order,
+            independent_first=admm.independent_first,
         )
 
 

@@ -27,6 +27,9 @@ class Carryover:
     """(M, d, K) the own positions of the plans applied."""
     neighbours: tuple[tuple[int, ...], ...]
     rho: float
+    multipliers: bool = True
+    """Whether the agents' multipliers are the step's to carry: False after a step answered by the
+    agents' own optima (``ADMMConfig.independent_first``), whose consensus multipliers are all zero."""
 
 
 def starting_consensus(positions: np.ndarray, previous: Carryover | None) -> np.ndarray:
@@ -44,6 +47,8 @@ def carried_blocks(
     """Per agent, which of its multipliers (own block, then each neighbour's) the new step
     carries over (see ``ADMMConfig.carry_multipliers``); every holder of a block decides
     alike, so each block's multipliers keep summing to zero."""
+    if previous is not None and not previous.multipliers:
+        return [(False,) * (1 + len(n)) for n in neighbours]
     if mode == "always":
         return [(True,) * (1 + len(n)) for n in neighbours]
     if mode == "never" or previous is None:

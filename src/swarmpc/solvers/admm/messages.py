@@ -47,6 +47,9 @@ class LocalRequest:
     """See ``ADMMConfig.reuse_tol``."""
     relaxation: float = 1.0
     """See ``ADMMConfig.relaxation``."""
+    independent: bool = False
+    """A probe (``ADMMConfig.independent_first``): the agent's own optimum with no neighbour in it,
+    answered without touching its consensus multipliers, its cached answer or its warm start."""
     carry: tuple[bool, ...] = ()
     """At a new step: per block (own, then each neighbour's), whether its multiplier is carried
     over (shifted) instead of restarting from zero; missing entries restart."""
@@ -164,6 +167,17 @@ class StepRequests:
             delta.flags.writeable = states.flags.writeable = False  # shared by the agent's requests
             self._shared[key] = (index, delta, states)
         return self._shared[key]
+
+    def independent(self, i: int, z: np.ndarray, rho: float) -> LocalRequest:
+        """Agent ``i``'s probe for its own optimum (:attr:`LocalRequest.independent`): no neighbours,
+        no planes, no consensus penalty (``z`` (M, d, K) only sizes its blocks)."""
+        s = self.settings
+        return LocalRequest(
+            agent=i, state=self.states[i], goal=self.goals[i], delta=np.zeros((0, s.dim)), rho=rho, rho_previous=rho,
+            owner_weight=0.0, new_step=True, z_own=z[i], neighbours=(), z_neighbours=np.zeros((0, *z.shape[1:])),
+            neighbour_states=np.zeros((0, self.states.shape[1])), guess=self.guess[i], reuse_tol=0.0,
+            relaxation=self.config.relaxation, independent=True, handover=self.config.deadline is None,
+        )
 
     def request(
         self, i: int, graph: CouplingGraph, z: np.ndarray, rho: float, rho_previous: float, new_step: bool,

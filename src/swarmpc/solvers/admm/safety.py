@@ -74,6 +74,22 @@ class SafetyChecks:
         outside = box_exterior_distance(own[first] - own[second], half, axis=1)
         return np.all(outside >= 0.5 * self.settings.d_min, axis=1)
 
+    def plans_keep_d_min(
+        self, results: Sequence[LocalResult], candidates: np.ndarray, states: np.ndarray, margin: float = 0.0,
+    ) -> bool:
+        """Every pair that can meet (``candidates`` (M, M), widened by :meth:`checked_pairs`) keeps
+        the full OBCA separation at every constrained step: a Euclidean distance of at least
+        d_min + ``margin`` from the offset of their own plans to the pair's Delta_ij box. With no
+        margin the pair constraints of the joint problem hold at these plans as they are, with no
+        copies and no slack for a consensus tolerance."""
+        first, second = np.nonzero(np.triu(self.checked_pairs(candidates, states, results), k=1))
+        if first.size == 0:
+            return True
+        own = own_positions(results)
+        half = self.pair_delta(first, second)[:, :, None]  # (n, d, 1)
+        outside = box_exterior_distance(own[first] - own[second], half, axis=1)
+        return bool(np.all(outside >= self.settings.d_min + margin))
+
     def first_close_steps(self, results: Sequence[LocalResult], agents: Sequence[int]) -> tuple[int, float]:
         """How close ``agents``' own plans come to every other plan: the first constrained step at
         which some pair of one of them with any other agent keeps less than d_min / 2 (the margin of

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -110,6 +110,11 @@ class ADMMSolver:
         self._waiting = np.zeros(num_agents, int)
         """Per agent, the steps in a row it has flown a fallback or committed plan (the selection
         pass's priority)."""
+        self._slack = True
+        """Whether the last step's plans kept every pair that could meet at least d_min + ``tol``
+        apart: no pair constraint near binding, the state in which the next step's probe
+        (``config.independent_first``) tends to be taken; after a step with a pair at d_min the
+        probe would mostly add a round for nothing."""
         self._applied: tuple[np.ndarray, np.ndarray] | None = None
         """States and inputs of the plans the last step applied (the committed plans of
         ``config.deadline_repair`` "select")."""
@@ -194,7 +199,11 @@ class ADMMSolver:
         requests = StepRequests(s, cfg, self.bodies, states, goals, guess, self._applied)
         graph = CouplingGraph.build(states, guess, goals, s, self.bodies, cfg)
         z = starting_consensus(s.model.position(guess[:, s.first_constrained_step:]), self.carryover)
-        run = self._iterate(requests, graph, z)
+        probing = cfg.independent_first and self._slack and any(graph.neighbours)
+        probe = self._independent(requests, graph, z) if probing else None
+        run = probe if probe is not None and probe.converged else self._iterate(requests, graph, z)
+        if probe is not None and run is not probe:  # the probe's round counts towards the step's compute
+            run = replace(run, agent_times=run.agent_times + probe.agent_times, failures=run.failures + probe.failures)
         repair = cfg.repair or self._clock.stopped  # a deadline stop is never left unrepaired
         repaired = not run.converged and repair
         before = self._clock.elapsed()[1]
@@ -209,6 +218,8 @@ class ADMMSolver:
         if budget is not None and budget.closed_at is not None:
             self._after_batches.append(self._clock.elapsed()[1] - budget.closed_at)
         self._waiting = np.where([r.fallback for r in safe.results], self._waiting + 1, 0)
+        if cfg.independent_first:
+            self._slack = self.safety.plans_keep_d_min(safe.results, safe.graph.candidates, states, cfg.tol)
         self._applied = (np.array([r.states for r in safe.results]), np.array([r.inputs for r in safe.results]))
         if repaired:  # a pass the budget cut short needed more than it took: the largest reserve
             cut = budget is not None and budget.refused
@@ -216,7 +227,7 @@ class ADMMSolver:
         # the next step's consensus starts from the plans actually applied: after a repair pass
         # the average z of a non-converged iterate is not what any agent flies
         self.carryover = Carryover(own_positions(safe.results), safe.graph.neighbours,
-                                   run.rho if cfg.adaptive_rho else cfg.rho)
+                                   run.rho if cfg.adaptive_rho else cfg.rho, multipliers=run is not probe)
         return self._plan_step(run, safe, repaired=repaired)
 
     def _reserve(self) -> float:
@@ -229,6 +240,27 @@ class ADMMSolver:
         if deadline is None or not self._safety_times:
             return 0.0
         return min(max(self._safety_times), 0.5 * deadline)
+
+    def _independent(self, requests: StepRequests, graph: CouplingGraph, z: np.ndarray) -> Iterations:
+        """The probe of ``config.independent_first``: every agent's own optimum with no neighbour in
+        it, in one round of local steps. Converged (one iteration, residuals zero) when every plan
+        succeeded and every pair that can meet keeps d_min at every constrained step
+        (:meth:`~swarmpc.solvers.admm.safety.SafetyChecks.plans_keep_d_min`): the joint problem's
+        pair constraints are slack at these plans, each of which minimises its own agent's cost
+        under its own constraints, so together they are the joint optimum, with every consensus
+        multiplier zero. The probe leaves the agents' ADMM state as it was, so a step whose probe
+        is not taken iterates exactly as it would have without it."""
+        rho = self.carryover.rho if self.carryover is not None else self.config.rho
+        results = self._solve([requests.independent(i, z, rho) for i in range(self.num_agents)])
+        times = np.zeros(self.num_agents)
+        for r in results:
+            times[r.agent] += compute_time(r)
+        failures = sum(not r.success for r in results)
+        clear = failures == 0 and self.safety.plans_keep_d_min(results, graph.candidates, requests.states)
+        residuals = Residuals()
+        if clear:
+            residuals.add(0.0, 0.0, rho)
+        return Iterations(results, graph, own_positions(results), rho, clear, residuals, times, failures)
 
     def _iterate(self, requests: StepRequests, graph: CouplingGraph, z: np.ndarray) -> Iterations:
         """ADMM iterations until the stop rule holds on plans that pass the checks, ``max_iter``,
