@@ -78,6 +78,18 @@ def test_later_pair_copies_are_refused_for_a_swarm_of_point_agents(tmp_path: Pat
     assert not out.exists()
 
 
+def test_the_probe_of_own_optima_is_refused_for_a_swarm_with_cars(tmp_path: Path):
+    data = yaml.safe_load(scenario_to_yaml(builtin_scenario("intersection")))
+    data["solver"].setdefault("admm", {})["independent_first"] = True
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    code, stderr = cli_in_process("run", str(path), "--out", str(out), "--quiet")
+    assert code == 2 and len(stderr.splitlines()) == 1
+    assert stderr.startswith(PREFIX + "solver.admm.independent_first: ")
+    assert not out.exists()
+
+
 def test_parking_by_admm_holds_each_pairs_copy_in_the_later_car_only():
     assert builtin_scenario("parking").solver.admm.pair_copies == "later"
     assert builtin_scenario("intersection").solver.admm.pair_copies == "both"

@@ -1485,6 +1485,9 @@ def _shape_errors(scn: Scenario) -> list[str]:
                     errors.append(f"obstacles[{n}].box.{field}: expected {d} values for dim {d}")
         elif ob.polytope is not None and len(ob.polytope.G[0]) != d:
             errors.append(f"obstacles[{n}].polytope.G: rows must have {d} columns for dim {d}")
+    if scn.solver.admm.independent_first and scn.has_cars:
+        errors.append("solver.admm.independent_first: applies to a swarm of point agents; the ADMM of a swarm with "
+                      "cars has no probe of the agents' own optima")
     if scn.solver.admm.pair_copies != "both" and not scn.has_cars:
         errors.append(f"solver.admm.pair_copies: {scn.solver.admm.pair_copies} applies to the ADMM of a swarm with "
                       "cars; a swarm of point agents keeps both")
