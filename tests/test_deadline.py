@@ -172,6 +172,7 @@ def test_a_deadline_stop_on_a_budget_repairs_what_fits_and_selects_the_rest(cros
 
 def test_a_deadline_that_never_binds_changes_nothing(crossing):
     scn, states = crossing
+    scn = scn.with_updates(**{"solver.admm.independent_first": False})  # these steps iterate, none is probed
     plain, _, plain_records = fly(scn, states, 4)
     roomy, _, roomy_records = fly(scn.with_updates(**{"solver.deadline": 1e6}), states, 4)
     assert max(r.admm_iterations for r in plain_records) > 10

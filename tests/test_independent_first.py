@@ -105,16 +105,26 @@ def test_after_a_step_answered_by_own_optima_no_multiplier_is_carried():
         assert carried_blocks(mode, neighbours, flown) == [(False, False), (False, False)]
 
 
-def test_the_scenario_key_selects_the_probe():
-    scn = builtin_scenario("paper-2d").with_updates(**{"solver.admm.independent_first": True})
+def test_a_scenario_that_leaves_the_key_out_probes_and_false_turns_it_off():
+    scn = builtin_scenario("paper-2d")
+    assert scn.solver.admm.independent_first is None
     assert ADMMConfig.from_options(scn.solver, scn.collision).independent_first
-    assert not ADMMConfig.from_options(builtin_scenario("paper-2d").solver, "hard").independent_first
+    off = scn.with_updates(**{"solver.admm.independent_first": False})
+    assert not ADMMConfig.from_options(off.solver, off.collision).independent_first
+    assert not ADMMConfig().independent_first  # the paper's algorithm
+
+
+def test_the_paper_reproduction_runs_the_papers_iterations():
+    from swarmpc.experiments.plan import RunSpec
+
+    spec = RunSpec("paper-2d", 0.3, "hard", "admm", "auto")
+    assert spec.build().solver.admm.independent_first is False
 
 
 @pytest.mark.loop
 def test_paper_2d_flies_the_same_closed_loop_in_fewer_iterations():
-    plain = simulate(builtin_scenario("paper-2d"))
-    probed = simulate(builtin_scenario("paper-2d").with_updates(**{"solver.admm.independent_first": True}))
+    plain = simulate(builtin_scenario("paper-2d").with_updates(**{"solver.admm.independent_first": False}))
+    probed = simulate(builtin_scenario("paper-2d"))
     scn = probed.scenario
     assert recount_collisions(probed.states, scn.delta_vector)[0] == 0
     assert probed.summary["all_reached"]

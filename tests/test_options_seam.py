@@ -111,8 +111,9 @@ def test_the_simulation_layer_imports_no_concrete_solver():
 
 # ------------------------------------------------------------------------------ solver.admm
 def test_the_admm_section_defaults_are_the_admm_config_defaults():
-    # every default but the local step's: a scenario's is the QP step, the solver object's the reference NLP
-    assert ADMMConfig.from_options(SolverConfig(), "soft") == ADMMConfig(local="qp")
+    # every default but the local step's and the probe's: a scenario's is the QP step with the probe of
+    # the agents' own optima, the solver object's the paper's algorithm (the reference NLP, no probe)
+    assert ADMMConfig.from_options(SolverConfig(), "soft") == ADMMConfig(local="qp", independent_first=True)
     hard = ADMMConfig.from_options(SolverConfig(), "hard")
     assert (hard.coupling_margin, hard.closing_time) == (0.2, 0.1)
 
@@ -134,6 +135,7 @@ solver:
     deadline_repair: select
     repair_order: colour
     dual_tol: 0.02
+    independent_first: false
 """
 
 
@@ -146,6 +148,7 @@ def test_every_admm_key_in_a_file_reaches_the_solver(tmp_path):
     assert (config.owner_weight, config.dynamic_copies, config.closing_time) == (2.5, True, 0.25)
     assert (config.repair_rounds, config.deadline_repair, config.repair_order) == (5, "select", "colour")
     assert config.dual_tol == 0.02 and config.local == "ipopt"  # dynamic copies: the NLP, unless asked
+    assert config.independent_first is False
     car_only = {"pair_copies"}  # the ADMM of a swarm with cars: test_pair_copies_in_a_file_reach_the_car_solver
     assert set(ADMMOptions.model_fields) - car_only == set(yaml.safe_load(ADMM_SECTION)["solver"]["admm"])
 

@@ -545,11 +545,13 @@ class ADMMOptions(_Frozen):
         "last iteration, at the step's starting rho); null: `solver.tol`, as in the paper. `rho * tol` stops a step "
         "once the consensus moves less than `solver.tol` per iteration.",
     )
-    independent_first: bool = Field(
-        default=False,
+    independent_first: bool | None = Field(
+        default=None,
         description="Ask every agent first for its own optimum with no neighbour in it; when those plans keep every "
         "pair that can meet d_min apart, they are the step's answer (the joint optimum, no consensus to reach) and "
-        "the step ends after that one round of local steps; else the ADMM iterations run as without it.",
+        "the step ends after that one round of local steps; else the ADMM iterations run as without it. Asked after "
+        "steps whose plans kept every pair d_min + `solver.tol` apart. `null`: on for a swarm of point agents, off "
+        "for a swarm with cars (whose ADMM has no such probe); `false`: the paper's iterations at every step.",
     )
     owner_weight: float = Field(
         default=5.0, gt=0,
@@ -1485,7 +1487,7 @@ def _shape_errors(scn: Scenario) -> list[str]:
                     errors.append(f"obstacles[{n}].box.{field}: expected {d} values for dim {d}")
         elif ob.polytope is not None and len(ob.polytope.G[0]) != d:
             errors.append(f"obstacles[{n}].polytope.G: rows must have {d} columns for dim {d}")
-    if scn.solver.admm.independent_first and scn.has_cars:
+    if scn.solver.admm.independent_first is True and scn.has_cars:
         errors.append("solver.admm.independent_first: applies to a swarm of point agents; the ADMM of a swarm with "
                       "cars has no probe of the agents' own optima")
     if scn.solver.admm.pair_copies != "both" and not scn.has_cars:

@@ -60,6 +60,7 @@ class RunSpec:
                 "seed": self.seed,
                 "solver.method": self.method,
                 "solver.local": PAPER_LOCAL,
+                "solver.admm.independent_first": False,  # the paper's iterations at every step
                 "solver.initial_guess": self.guess,
                 "stop.max_steps": self.max_steps,
             }

@@ -83,7 +83,10 @@ class ADMMConfig:
     pair that can meet d_min apart at every constrained step, the joint problem's pair constraints
     are slack there, so the plans are its optimum and ADMM's fixed point (every consensus
     multiplier zero): the step ends with them after one round of local steps. Otherwise the
-    iterations run exactly as without the probe, which only adds its round to the step."""
+    iterations run exactly as without the probe, which only adds its round to the step. A scenario
+    that leaves ``solver.admm.independent_first`` out turns it on (:meth:`from_options`); the
+    paper's algorithm, and this class's default, has no probe
+    (evidence: docs/lab/admm.md#independent-first)."""
     reuse_tol: float = 1e-4
     """Within an MPC step, an agent whose consensus targets (z - gamma / rho_b, per block) all moved
     less than this [m] since its last solve, at the same penalty and neighbours, sends its last
@@ -158,7 +161,7 @@ class ADMMConfig:
             repair_rounds=admm.repair_rounds, stall_window=admm.stall_window, stall_rho_factor=admm.stall_rho_factor,
             rho_bounds=(admm.rho_min, admm.rho_max), carry_multipliers=admm.carry_multipliers,
             warm_start=admm.warm_start, deadline_repair=admm.deadline_repair, repair_order=admm.repair_order,
-            independent_first=admm.independent_first,
+            independent_first=admm.independent_first is not False,
         )
 
 
