@@ -65,10 +65,14 @@ class _FlakyAgent:
                                 agent.rescue)
         self.failing = failing
         self.step = -1
+        self.state: np.ndarray | None = None
 
     def solve(self, request: Any) -> Any:
-        if request.new_step:
+        # a step's first request (its probe of the agent's own optimum, else its first iteration)
+        # starts from a new measured state; the probe and the iterations of one step share it
+        if request.new_step and (self.state is None or not np.array_equal(request.state, self.state)):
             self.step += 1
+            self.state = request.state
         self.ladder.failing = (self.step, request.agent) in self.failing
         return self.inner.solve(request)
 
