@@ -96,6 +96,27 @@ def test_the_next_step_probes_only_after_plans_that_kept_every_pair_clear_of_d_m
     assert executor.probes == (8 if closest >= s.d_min + config.tol else 4)
 
 
+def test_an_agent_remembers_the_probe_it_flew_as_its_last_plan():
+    """Its fallback is its last flown plan shifted: a probe followed by a request from another state
+    was flown (also when that request is the next step's probe), one followed by a request from
+    the same state was not."""
+    from swarmpc.solvers.admm.agent import LocalAgentFactory
+    from swarmpc.solvers.admm.messages import StepRequests
+
+    scn, s, states, goals, guess = parting_pair()
+    config = ADMMConfig(local="qp", independent_first=True)
+    agent = LocalAgentFactory.for_config(s, np.broadcast_to(scn.delta_vector / 2, (2, 2)), config)(0)
+    z = np.zeros((2, s.dim, s.num_constrained))
+    first = agent.solve(StepRequests(s, config, np.zeros((2, 2)), states, goals, guess).independent(0, z, 10.0))
+    assert first.success and agent._plan is None  # not flown yet
+    moved = first.states[1][None].repeat(2, axis=0)
+    again = StepRequests(s, config, np.zeros((2, 2)), moved, goals, guess)
+    agent.solve(again.independent(0, z, 10.0))
+    assert agent._plan is not None and np.array_equal(agent._plan[0], first.states)  # flown: the new step moved on
+    agent.solve(again.independent(0, z, 10.0))  # from the same state: the last probe was not flown
+    assert np.array_equal(agent._plan[0], first.states)
+
+
 def test_after_a_step_answered_by_own_optima_no_multiplier_is_carried():
     neighbours = [(1,), (0,)]
     kept = Carryover(np.zeros((2, 2, 3)), ((1,), (0,)), 10.0)

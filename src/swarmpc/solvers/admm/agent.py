@@ -276,6 +276,7 @@ class LocalAgent:
         probe is not taken iterates exactly as it would have without one. A failed probe answers
         the fallback plan (marked so); the coordinator then iterates."""
         s = self.settings
+        self._flown_probe(request)  # the last step may have flown the last probe
         self._fallbacks, self._handover, self._quick = 0, request.handover, False
         params = self._parameters(request)
         solution = self._ladder_solve(self.nlp, params, self._start(request, False), None, copies=0, planes=0)
