@@ -159,7 +159,10 @@ class ADMMSolver:
         (:meth:`CouplingGraph.build`) and grows only by pairs whose plans conflict. The agents
         iterate through the executor until the residuals meet ``tol`` and every coupled pair's
         plans are clear (:meth:`_iterate`); a step that ends without consensus goes through the
-        repair pass (:class:`~swarmpc.solvers.admm.repair.Repair`).
+        repair pass (:class:`~swarmpc.solvers.admm.repair.Repair`). With
+        ``config.independent_first``, after a step whose plans kept every pair d_min + ``tol``
+        apart, every agent's own optimum is asked first (:meth:`_independent`): plans that keep
+        every pair that can meet d_min apart are the step's answer, with no iterations.
 
         With ``config.deadline``, ADMM is anytime: before each iteration after the first, the
         step's critical path so far plus the largest share of the last few iterations plus a reserve for the
