@@ -69,10 +69,14 @@ class SafetyChecks:
         differ from the copies by more: half of d_min is kept as the margin, contact is at 0."""
         if first.size == 0:
             return np.ones(0, bool)
+        return np.all(self._outside(results, first, second) >= 0.5 * self.settings.d_min, axis=1)
+
+    def _outside(self, results: Sequence[LocalResult], first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        """(n, K) per pair and constrained step, the Euclidean distance of the offset of the two
+        agents' own plans to the pair's Delta_ij box."""
         own = own_positions(results)
         half = self.pair_delta(first, second)[:, :, None]  # (n, d, 1)
-        outside = box_exterior_distance(own[first] - own[second], half, axis=1)
-        return np.all(outside >= 0.5 * self.settings.d_min, axis=1)
+        return box_exterior_distance(own[first] - own[second], half, axis=1)
 
     def plans_keep_d_min(
         self, results: Sequence[LocalResult], candidates: np.ndarray, states: np.ndarray, margin: float = 0.0,
@@ -85,10 +89,7 @@ class SafetyChecks:
         first, second = np.nonzero(np.triu(self.checked_pairs(candidates, states, results), k=1))
         if first.size == 0:
             return True
-        own = own_positions(results)
-        half = self.pair_delta(first, second)[:, :, None]  # (n, d, 1)
-        outside = box_exterior_distance(own[first] - own[second], half, axis=1)
-        return bool(np.all(outside >= self.settings.d_min + margin))
+        return bool(np.all(self._outside(results, first, second) >= self.settings.d_min + margin))
 
     def first_close_steps(self, results: Sequence[LocalResult], agents: Sequence[int]) -> tuple[int, float]:
         """How close ``agents``' own plans come to every other plan: the first constrained step at

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections import Counter, deque
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 
@@ -178,7 +177,6 @@ class Selection:
                 if answer.success:
                     repaired[i] = answer
                     continue
-                repaired[i] = replace(results[i], solve_time=answer.solve_time)
                 pending.extend(j for pair in clashing if i in pair for j in pair
                                if j not in asked and j not in pending)
         return repaired
