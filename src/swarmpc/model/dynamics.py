@@ -13,7 +13,6 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import casadi as ca
 import numpy as np
-import scipy.linalg
 
 if TYPE_CHECKING:
     from swarmpc.model.agent_model import AgentModel
@@ -205,6 +204,8 @@ def lqr_terminal_weight(model: AgentModel, Q: np.ndarray, R: np.ndarray) -> np.n
     problem = riccati_weights_problem(Q, R) if isinstance(model, DoubleIntegrator) else None
     if problem is not None:
         raise ValueError(problem)
+    import scipy.linalg  # here, not at the top: the command line starts without scipy (about 0.4 s)
+
     try:
         P = scipy.linalg.solve_discrete_are(A, B, Q, R)
     except (np.linalg.LinAlgError, ValueError) as err:

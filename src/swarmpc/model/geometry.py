@@ -13,8 +13,6 @@ every pair, or per-agent body half-sizes (M, d) (:func:`as_bodies`).
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linprog
-from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 
 def box_halfspaces(center: np.ndarray, half_size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -230,6 +228,10 @@ def polytope_vertices(
     ValueError
         When the set is unbounded and no ``bounds`` are given, or the shapes disagree.
     """
+    # scipy here, not at the top: the command line starts without it (about 0.4 s)
+    from scipy.optimize import linprog
+    from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
+
     G = np.atleast_2d(np.asarray(G, float))
     g = np.asarray(g, float).reshape(-1)
     d = G.shape[1]
