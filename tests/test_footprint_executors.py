@@ -5,7 +5,7 @@ worker process that dies is reported as for point agents."""
 from __future__ import annotations
 
 import pickle
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -94,8 +94,19 @@ def test_executor_matches_serial(make: Callable[[], Executor], serial_steps: tup
     assert_same_steps(reference, two_steps(SETUPS[name], make()))
 
 
+@pytest.fixture(scope="module")
+def ray_session() -> Iterator[None]:
+    """One local Ray for the module's Ray tests (starting and stopping one costs about 6 s); an
+    executor that finds Ray running uses it and leaves it running. Starting Ray on demand is
+    tested in tests/test_executors.py."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install 'swarmpc[ray]')")
+    ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.mark.usefixtures("ray_session")
 def test_ray_executor_matches_serial(serial_steps: tuple[str, list[PlanStep]]) -> None:
-    pytest.importorskip("ray", reason="Ray is not installed (pip install 'swarmpc[ray]')")
     name, reference = serial_steps
     assert_same_steps(reference, two_steps(SETUPS[name], RayExecutor(actors=2)))
 
