@@ -12,11 +12,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import swarmpc.scenarios as scenarios_module
 from swarmpc.config import (
     MAX_AGENTS,
     MAX_FACETS,
@@ -32,7 +34,7 @@ from swarmpc.config import (
     parse_yaml_text,
     scenario_from_dict,
 )
-from swarmpc.scenarios import BUILTINS, builtin_parameters, builtin_scenario
+from swarmpc.scenarios import BUILTINS, builtin_parameters, builtin_scenario, packing_bound
 from swarmpc.simulation.loop import simulate
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -413,6 +415,32 @@ class TestBuiltinArguments:
         with pytest.raises(ScenarioError, match="^agents: 300 agents do not fit"):
             builtin_scenario("random", agents=300, dim=2)
         assert time.perf_counter() - started < 30.0
+
+    def test_more_agents_than_the_packing_bound_are_refused_before_sampling(self, monkeypatch):
+        class NoDraws:
+            def uniform(self, *_args: Any) -> Any:
+                raise AssertionError("sampled a swarm the packing bound refuses")
+
+        monkeypatch.setattr(scenarios_module.np.random, "default_rng", lambda *_args: NoDraws())
+        with pytest.raises(ScenarioError, match="^agents: 300 agents do not fit"):
+            builtin_scenario("random", agents=300, dim=2)
+        with pytest.raises(ScenarioError, match="^agents: 400 agents do not fit"):
+            builtin_scenario("random", agents=400, dim=3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 3), st.floats(0.2, 1.0))
+def test_no_point_set_spaced_apart_beats_the_packing_bound(seed, dim, spacing):
+    """Points packed greedily, every pair at least ``spacing`` apart along some axis, never
+    outnumber the bound, and a grid of exactly that pitch (the tightest packing) reaches it."""
+    rng = np.random.default_rng(seed)
+    sides = rng.uniform(0.0, 3.0, dim)
+    grid = np.stack(np.meshgrid(*[np.arange(0.0, side + 1e-12, spacing) for side in sides]), -1).reshape(-1, dim)
+    points = np.empty((0, dim))
+    for p in np.concatenate([grid[rng.random(len(grid)) < 0.5], rng.uniform(0.0, sides, (300, dim))]):
+        if not len(points) or np.max(np.abs(points - p), axis=1).min() >= spacing:
+            points = np.vstack([points, p])
+    assert len(points) <= packing_bound(sides, spacing) == len(grid)
 
 
 # ------------------------------------------------------------------ changed in place

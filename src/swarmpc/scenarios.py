@@ -129,6 +129,9 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
     two goals closer than the OBCA separation d_min (0.05 m by default) can never both be held, and
     Euclidean spacing alone allows that (offset (0.31, 0.31, 0.26) is 0.51 m long but 0.014 m from
     the box).
+
+    More agents than :func:`packing_bound` allows are refused at once; below it, the sampler gives
+    up after 200 000 draws.
     """
     rng = np.random.default_rng(seed)
     lower = np.array([-1.5 * box_scale, -1.5 * box_scale, 0.2][:dim])
@@ -139,6 +142,10 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
         offsets = p - others
         return bool(np.all(np.linalg.norm(offsets, axis=1) >= min_gap)
                     and np.all(box_signed_distance(offsets, half) >= clearance))
+
+    apart = max(delta + (clearance / np.sqrt(dim) if clearance > 0 else clearance), min_gap / np.sqrt(dim))
+    if agents > packing_bound(upper - lower - 0.2, apart):  # at once, not after 200 000 draws
+        raise ScenarioError(f"agents: {agents} agents do not fit {min_gap} m apart in the random box")
 
     def sample() -> np.ndarray:
         points, count = np.empty((agents, dim)), 0
@@ -157,6 +164,21 @@ def random_swarm(agents: int = 8, dim: int = 3, seed: int = 0, delta: float = 0.
             "agents": [{"start": s.round(4).tolist(), "goal": g.round(4).tolist()}
                        for s, g in zip(starts, goals, strict=True)],
             "stop": {"goal_tolerance": 0.1, "max_steps": int(np.ceil(600 * max(box_scale, 1.0)))}}
+
+
+def packing_bound(sides: np.ndarray, spacing: float) -> int:
+    """At most how many points fit in a box with these ``sides`` when every pair differs by at
+    least ``spacing`` along some axis (infinity-norm distance): cells of side ``spacing`` tile the
+    box, floor(side / spacing) + 1 along each axis, and two points in one half-open cell are closer
+    than ``spacing``.
+
+    A pair of ``random_swarm``'s points is ``min_gap`` apart (Euclidean), so at least
+    min_gap / sqrt(d) along some axis, and a point is ``clearance`` from the other's delta box,
+    so at least delta + clearance / sqrt(d) along some axis (delta + clearance for a clearance <= 0).
+    """
+    if spacing <= 0:
+        return np.iinfo(np.int64).max
+    return int(np.prod(np.floor(np.asarray(sides, float) / spacing) + 1))
 
 
 SPREAD_DENSITY_AGENTS = 8
