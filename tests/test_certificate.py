@@ -134,3 +134,27 @@ def test_batched_box_certificates_equal_the_rows_one_by_one_bit_for_bit(dim: int
     expected = np.array([_box_certificate_reference(q, half) for q in offsets])
     assert np.array_equal(batch, expected)
     assert np.array_equal(box_certificate(offsets[0], half), expected[0])
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 10_000), st.integers(2, 3), st.integers(1, 9))
+def test_polytope_vertices_tells_bounded_from_unbounded_as_linear_programs_do(seed, dim, rows):
+    """A polytope around the origin is bounded iff no extent along an axis is infinite (2d linear
+    programs, the reference); bounded ones get vertices that meet every row."""
+    from scipy.optimize import linprog
+
+    from swarmpc.model.geometry import polytope_vertices
+
+    rng = np.random.default_rng(seed)
+    G = rng.normal(size=(rows, dim))
+    if rng.random() < 0.5:  # half of them open to one side
+        G[:, 0] = np.abs(G[:, 0])
+    g = rng.uniform(0.5, 2.0, rows)
+    extents = [linprog(-e, A_ub=G, b_ub=g, bounds=[(None, None)] * dim, method="highs").status
+               for e in np.vstack([np.eye(dim), -np.eye(dim)])]
+    if 3 in extents:
+        with pytest.raises(ValueError, match="unbounded"):
+            polytope_vertices(G, g)
+    else:
+        vertices = polytope_vertices(G, g)
+        assert len(vertices) >= dim + 1 and np.all(vertices @ G.T <= g + 1e-9)

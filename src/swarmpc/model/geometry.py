@@ -204,6 +204,21 @@ def body_obstacle_penetration(
     return np.min(inside, axis=-1)
 
 
+def _positively_spanning(A: np.ndarray) -> bool:
+    """Whether the rows of ``A`` (unit norm) positively span R^d, i.e. a nonempty {p : A p <= b}
+    is bounded: the recession cone {y : A y <= 0} is {0} exactly when the origin lies inside the
+    convex hull of the rows, which one hull computation decides (2d linear programs did before)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if A.shape[1] == 1:
+        return bool(A.min() < 0 < A.max())
+    try:
+        hull = ConvexHull(A)
+    except QhullError:  # fewer than d + 1 affinely independent rows: a flat hull
+        return False
+    return bool(np.all(hull.equations[:, -1] < -1e-9))
+
+
 def polytope_vertices(
     G: np.ndarray, g: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray:
@@ -262,11 +277,8 @@ def polytope_vertices(
     centre = lp.x  # None only when the solve failed (status != 0)
     if lp.status != 0 or centre is None or centre[-1] <= 1e-9:
         return np.empty((0, d))
-    if bounds is None:
-        for direction in np.vstack([np.eye(d), -np.eye(d)]):  # bounded iff every extent is finite
-            extent = linprog(-direction, A_ub=A, b_ub=b, bounds=[(None, None)] * d, method="highs")
-            if extent.status == 3:
-                raise ValueError("the polytope is unbounded: pass bounds to clip it")
+    if bounds is None and not _positively_spanning(A):
+        raise ValueError("the polytope is unbounded: pass bounds to clip it")
     try:
         points = HalfspaceIntersection(np.hstack([A, -b[:, None]]), centre[:d]).intersections
         hull = ConvexHull(points)
