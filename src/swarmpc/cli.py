@@ -506,10 +506,16 @@ def scenarios() -> None:
 @app.command()
 def plot(run_dir: Annotated[Path, typer.Argument(help="a run folder")]) -> None:
     """Write trajectory.png (and convergence.png for ADMM runs) into a run folder."""
-    from swarmpc.plots import RunDataError, plot_run
+    from swarmpc.simulation.rundata import RunDataError, load_run
 
     try:
-        for path in plot_run(run_dir):
+        run = load_run(run_dir)  # a damaged folder is refused before the plotting libraries load
+    except (RunDataError, OSError) as err:
+        fail(str(err).splitlines()[0])
+    from swarmpc.plots import plot_run
+
+    try:
+        for path in plot_run(run):
             typer.echo(str(path))
     except (RunDataError, OSError) as err:
         fail(str(err).splitlines()[0])
@@ -523,14 +529,20 @@ def animate(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out file")] = False,
 ) -> None:
     """Animate a run: moving agents with their delta boxes, trails and a time stamp."""
-    from swarmpc.plots import AnimationWriterError, RunDataError, load_run
-    from swarmpc.plots import animate as write_animation
+    from swarmpc.simulation.rundata import RunDataError, load_run
 
     if format not in ("gif", "mp4"):
         fail(f"--format: must be gif or mp4, got {format!r}")
     check_out_file(out, overwrite)
     try:
-        path = write_animation(load_run(run_dir), out or run_dir / f"animation.{format}", fmt=format)  # type: ignore[arg-type]
+        run = load_run(run_dir)  # a damaged folder is refused before the plotting libraries load
+    except (RunDataError, OSError) as err:
+        fail(str(err).splitlines()[0])
+    from swarmpc.plots import AnimationWriterError
+    from swarmpc.plots import animate as write_animation
+
+    try:
+        path = write_animation(run, out or run_dir / f"animation.{format}", fmt=format)  # type: ignore[arg-type]
     except (RunDataError, AnimationWriterError, OSError) as err:
         fail(str(err).splitlines()[0])
     typer.echo(str(path))

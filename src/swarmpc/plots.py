@@ -716,13 +716,13 @@ def animate(
 
 
 # --------------------------------------------------------------------------------- entry point
-def plot_run(run_dir: PathLike, out: PathLike | None = None) -> list[Path]:
+def plot_run(run_dir: PathLike | RunData, out: PathLike | None = None) -> list[Path]:
     """Load a run folder and write its figures (what ``swarmpc plot RUN_DIR`` calls).
 
     Parameters
     ----------
-    run_dir : str or PathLike
-        The run folder.
+    run_dir : str, PathLike or RunData
+        The run folder, or one already loaded (:func:`load_run`).
     out : str or PathLike, optional
         Output folder (created if needed); default the run folder.
 
@@ -731,7 +731,7 @@ def plot_run(run_dir: PathLike, out: PathLike | None = None) -> list[Path]:
     list of Path
         ``trajectory.png`` and, when the run has ADMM residuals, ``convergence.png``.
     """
-    run = load_run(Path(run_dir))
+    run = run_dir if isinstance(run_dir, RunData) else load_run(Path(run_dir))
     folder = Path(out) if out is not None else run.run_dir
     written = [plot_trajectories(run, folder / "trajectory.png")]
     if run.admm is not None and run.admm.primal.shape[0] > 0:
