@@ -207,7 +207,7 @@ def body_obstacle_penetration(
 def _positively_spanning(A: np.ndarray) -> bool:
     """Whether the rows of ``A`` (unit norm) positively span R^d, i.e. a nonempty {p : A p <= b}
     is bounded: the recession cone {y : A y <= 0} is {0} exactly when the origin lies inside the
-    convex hull of the rows, which one hull computation decides (2d linear programs did before)."""
+    convex hull of the rows, which one hull computation decides (cheaper than 2d linear programs)."""
     from scipy.spatial import ConvexHull, QhullError
 
     if A.shape[1] == 1:
