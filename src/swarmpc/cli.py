@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from enum import StrEnum
 from pathlib import Path
 from types import FrameType
-from typing import Annotated, Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import numpy as np
 import typer
@@ -24,6 +24,9 @@ import yaml
 from swarmpc._interrupts import INTERRUPTED, caused_by_interrupt
 from swarmpc.config import MAX_AGENTS, Scenario, ScenarioError, executor_problem, load_scenario
 from swarmpc.simulation.outdir import OutputError, RunFolderTarget
+
+if TYPE_CHECKING:
+    from swarmpc.simulation.rundata import RunData
 
 app = typer.Typer(
     add_completion=False,
@@ -503,15 +506,23 @@ def scenarios() -> None:
         typer.echo(f"{name:<{width}}  {text}")
 
 
-@app.command()
-def plot(run_dir: Annotated[Path, typer.Argument(help="a run folder")]) -> None:
-    """Write trajectory.png (and convergence.png for ADMM runs) into a run folder."""
+def loaded_run(run_dir: Path) -> RunData:
+    """The run folder ``run_dir`` loaded, or one line and exit 2: a damaged folder is refused before
+    the plotting libraries load (about 1 s)."""
     from swarmpc.simulation.rundata import RunDataError, load_run
 
     try:
-        run = load_run(run_dir)  # a damaged folder is refused before the plotting libraries load
+        return load_run(run_dir)
     except (RunDataError, OSError) as err:
         fail(str(err).splitlines()[0])
+
+
+@app.command()
+def plot(run_dir: Annotated[Path, typer.Argument(help="a run folder")]) -> None:
+    """Write trajectory.png (and convergence.png for ADMM runs) into a run folder."""
+    from swarmpc.simulation.rundata import RunDataError
+
+    run = loaded_run(run_dir)
     from swarmpc.plots import plot_run
 
     try:
@@ -529,15 +540,12 @@ def animate(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out file")] = False,
 ) -> None:
     """Animate a run: moving agents with their delta boxes, trails and a time stamp."""
-    from swarmpc.simulation.rundata import RunDataError, load_run
+    from swarmpc.simulation.rundata import RunDataError
 
     if format not in ("gif", "mp4"):
         fail(f"--format: must be gif or mp4, got {format!r}")
     check_out_file(out, overwrite)
-    try:
-        run = load_run(run_dir)  # a damaged folder is refused before the plotting libraries load
-    except (RunDataError, OSError) as err:
-        fail(str(err).splitlines()[0])
+    run = loaded_run(run_dir)
     from swarmpc.plots import AnimationWriterError
     from swarmpc.plots import animate as write_animation
 
