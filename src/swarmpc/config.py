@@ -677,6 +677,19 @@ class QPOptions(_Frozen):
         "(interior point: about ten iterations where OSQP needs hundreds on these tightly constrained QPs, "
         "and a quick verdict on an infeasible one) or `osqp`.",
     )
+    elastic: bool = Field(
+        default=True,
+        description="A repair call (neighbours' plans held fixed) whose certificate loops fail is solved again "
+        "with soft pair rows from its last plan; a soft plan that needs no slack starts the hard loop again, "
+        "whose answer is taken instead of handing the call to IPOPT.",
+    )
+    handover_slack: float | None = Field(
+        default=1e-4, ge=0,
+        description="With `elastic`: a failed repair call goes to IPOPT (when the step allows a hand-over) only "
+        "if its soft plan falls short of d_min by at most this [m]; a call whose soft plan needs more has no "
+        "feasible plan near it, and IPOPT mostly spends 50-400 ms to say so. `null`: every failed call is "
+        "handed over.",
+    )
 
 
 REMOVED_SOLVER_KEYS: typing.Mapping[str, str] = types.MappingProxyType({

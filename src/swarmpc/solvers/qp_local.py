@@ -151,6 +151,13 @@ class QPLocalOptions:
     """QP solver of the calls whose copies are free (the ADMM iterations): "osqp" or "piqp"."""
     repair_solver: str = "piqp"
     """QP solver of the calls whose copies are pinned (the repair passes): "piqp" or "osqp"."""
+    elastic: bool = True
+    """A hard repair call whose certificate loops fail is solved again with soft pair rows from
+    its last plan (the least-violating plan, always feasible); a plan that needs no slack starts
+    the hard loop again, whose answer is taken."""
+    handover_slack: float | None = 1e-4
+    """[m] With ``elastic``: a failed repair call is handed to IPOPT only when its soft plan falls
+    short of d_min by at most this; None: every failed call is handed over (when allowed)."""
 
     @classmethod
     def from_config(cls, config: QPOptions) -> QPLocalOptions:
@@ -1517,7 +1524,7 @@ class QPLocalLadder:
             raise NotImplementedError(f"the QP local step cannot pin {unknown} (free copies and pair slacks only)")
         pinned = None
         if any(key.startswith("C") for key in fixed):
-            pinned = self._pinned(fixed, copies)
+            pinned = self.pinned_copies(fixed, copies)
         caps = {c: float(np.max(fixed[f"A{c}"])) for c in range(copies)
                 if f"A{c}" in fixed} if fixed and self.pair_collision == "soft" else {}
         with self._lock:
@@ -1546,12 +1553,12 @@ class QPLocalLadder:
     ) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
         """:meth:`SequentialLocalQP.verified` of the plan in ``point`` (X, U) against the copies
         ``fixed`` pins (``C{c}``), by the pinned shape's step."""
-        pinned = self._pinned(fixed, copies)
+        pinned = self.pinned_copies(fixed, copies)
         with self._lock:
             stepper = self.stepper(LocalShape(copies, planes, True, self.pair_collision))
             return stepper.verified(params, point["X"], point["U"], pinned)
 
-    def _pinned(self, fixed: dict[str, Any], copies: int) -> np.ndarray:
+    def pinned_copies(self, fixed: dict[str, Any], copies: int) -> np.ndarray:
         """The copies' positions (n, d, K) that ``fixed`` pins (``C{c}``)."""
         pinned = np.array([np.asarray(fixed[f"C{c}"], float) for c in range(copies)])
         return pinned.reshape(copies, self.settings.dim, self.settings.num_constrained)

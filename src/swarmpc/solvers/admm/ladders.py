@@ -11,7 +11,8 @@ import numpy as np
 from swarmpc.formulation.nlp import CompiledNLP, NLPSolution
 from swarmpc.formulation.ocp import OCPSettings, build_local
 from swarmpc.solvers.admm.messages import KEPT_PLAN, FallbackSolution
-from swarmpc.solvers.qp_local import PROVEN_INFEASIBLE, QPLocalLadder
+from swarmpc.solvers.guesses import agent_guess_blocks, pair_guess_blocks
+from swarmpc.solvers.qp_local import PROVEN_INFEASIBLE, QPLocalLadder, copy_deltas
 
 
 class WarmStartable(Protocol):
@@ -143,6 +144,8 @@ class QPLocalSolverLadder:
     def __init__(self, qp: QPLocalLadder, ipopt: LocalSolverLadder) -> None:
         self.qp = qp
         self.ipopt = ipopt
+        self._soft: QPLocalLadder | None = None
+        """The same problems with soft pair rows (:meth:`_elastic`), built on first use."""
 
     def solve(
         self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None = None,
@@ -151,14 +154,29 @@ class QPLocalSolverLadder:
     ) -> NLPSolution:
         """The QP path's answer if it succeeds or proves the problem infeasible, else IPOPT's
         (:class:`FallbackSolution`); with ``handover`` False the QP path's answer, failed or not.
+        With ``elastic`` (a hard repair call), a failed call is first solved again with soft pair
+        rows (:meth:`_elastic`); a call whose soft plan falls short of d_min by more than
+        ``handover_slack`` has no feasible plan near it and is not handed to IPOPT, which mostly
+        spends 50-400 ms to find none either.
         ``restarts``: see :meth:`swarmpc.solvers.qp_local.SequentialLocalQP.solve`. A call of an
         ADMM iteration (copies free) takes ``iteration_rounds`` certificate rounds at most, a
         repair call (copies pinned) ``max_rounds``."""
         pinned = pins_copies(fixed)
-        rounds = None if pinned else self.qp.options.iteration_rounds
+        options = self.qp.options
+        rounds = None if pinned else options.iteration_rounds
         answer = self.qp.solve(params, guess, fixed, copies=copies, planes=planes, duals=duals, restarts=restarts,
                                rounds=rounds)
-        if answer.success or answer.status == PROVEN_INFEASIBLE or not handover:
+        if answer.success or answer.status == PROVEN_INFEASIBLE:
+            return answer
+        slack = None
+        if pinned and options.elastic and self.qp.pair_collision == "hard":
+            assert fixed is not None
+            found, slack, spent = self._elastic(params, answer, fixed, copies, planes)
+            answer = replace(answer, solve_time=answer.solve_time + spent)
+            if found is not None:
+                return replace(found, solve_time=answer.solve_time)
+        far = slack is not None and options.handover_slack is not None and slack > options.handover_slack
+        if not handover or far:
             return answer
         start = self.qp.guess_blocks(params, guess, copies=copies, planes=planes, pinned=pinned)
         reference = self.ipopt.solve(params, start, fixed, copies=copies, planes=planes)
@@ -167,6 +185,43 @@ class QPLocalSolverLadder:
         if reference.success:
             values["x_vec"] = self.qp.solution_vector(reference.x, params, copies=copies, planes=planes, pinned=pinned)
         return FallbackSolution(**values, qp_status=answer.status)
+
+    def _elastic(
+        self, params: dict[str, Any], failed: NLPSolution, fixed: dict[str, Any], copies: int, planes: int,
+    ) -> tuple[NLPSolution | None, float | None, float]:
+        """A failed hard repair call solved again with soft pair rows (an exact L1 penalty, kappa per
+        metre) from the failed loop's last plan: its certificate loop moves the plan towards
+        feasibility where the hard rows of the failed certificates left no feasible point. A soft
+        plan within the rows' margin of d_min starts the hard loop again. Returns (the hard answer
+        if it succeeded, the soft plan's largest slack (None when the soft call failed), the time
+        spent)."""
+        if self._soft is None:
+            self._soft = QPLocalLadder(self.qp.settings, "soft", self.qp.options, self.qp.backend)
+        pinned = self.qp.pinned_copies(fixed, copies)
+        start = self._pair_start(np.asarray(failed.x["X"]).T, pinned, params, soft=True)
+        soft = self._soft.solve(params, start, fixed, copies=copies, planes=planes)
+        if not soft.success:
+            return None, None, soft.solve_time
+        slack = max((float(np.max(soft.x[f"A{c}"])) for c in range(copies)), default=0.0)
+        if slack > self.qp.options.margin:
+            return None, slack, soft.solve_time
+        start = self._pair_start(np.asarray(soft.x["X"]).T, pinned, params, soft=False)
+        hard = self.qp.solve(params, start, fixed, copies=copies, planes=planes)
+        return (hard if hard.success else None), slack, soft.solve_time + hard.solve_time
+
+    def _pair_start(
+        self, plan: np.ndarray, pinned: np.ndarray, params: dict[str, Any], soft: bool,
+    ) -> dict[str, np.ndarray]:
+        """The blocks of a start at state plan ``plan`` (N+1, n): its inputs and the best
+        certificates (and soft slacks) of its offsets from the ``pinned`` copies (n, d, K)."""
+        s = self.qp.settings
+        form = replace(s, collision="soft") if soft else s
+        own = s.model.position(plan[s.first_constrained_step:])  # (K, d)
+        delta = copy_deltas(params["delta"], len(pinned), s.dim)  # (d, n)
+        point = agent_guess_blocks("", plan, s)
+        for c, other in enumerate(pinned):
+            point.update(pair_guess_blocks(str(c), own - other.T, delta[:, c], form))
+        return point
 
     def verified(
         self, params: dict[str, Any], point: dict[str, np.ndarray], fixed: dict[str, Any], *, copies: int,
