@@ -10,7 +10,7 @@ rescued by the least-violating plan of the soft-constrained problem.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any, Literal
 
@@ -89,6 +89,27 @@ def _shifted(multiplier: np.ndarray) -> np.ndarray:
     return shift_blocks({"gamma": multiplier})["gamma"]
 
 
+def matching_slots(wanted: Sequence[int], offered: Sequence[int]) -> tuple[list[int], list[int]]:
+    """The slots of ``wanted`` whose agent ``offered`` holds too, and the (first) slot of that agent
+    in ``offered``; ``wanted`` holds each agent once."""
+    first: dict[int, int] = {}
+    for slot, j in enumerate(offered):
+        first.setdefault(j, slot)
+    slots = [slot for slot, j in enumerate(wanted) if j in first]
+    return slots, [first[wanted[slot]] for slot in slots]
+
+
+def _answered_copies(
+    request: LocalRequest, last: LocalResult, last_neighbours: tuple[int, ...],
+) -> tuple[Sequence[int], np.ndarray, np.ndarray]:
+    """The neighbours of ``request`` that the ``last`` answer (to ``last_neighbours``) holds copies
+    of too, those copies (n, d, K) and the z of them ``request`` sends (n, d, K)."""
+    if request.neighbours == last_neighbours:  # the usual case: the neighbours of the last answer
+        return request.neighbours, last.copies[: len(last_neighbours)], request.z_neighbours
+    slots, sent = matching_slots(request.neighbours, last_neighbours)
+    return [request.neighbours[slot] for slot in slots], last.copies[sent], request.z_neighbours[slots]
+
+
 def _relaxed(answer: np.ndarray, alpha: float, previous: np.ndarray | None) -> np.ndarray:
     return answer if alpha == 1.0 or previous is None else alpha * answer + (1.0 - alpha) * previous
 
@@ -106,7 +127,8 @@ class ConsensusMultipliers:
         """The own block's multiplier; None while nobody couples with the agent."""
         self.copies: dict[int, np.ndarray] = {}
         """Neighbour j -> the multiplier of the agent's copy of j."""
-        self._previous_z: tuple[np.ndarray, dict[int, np.ndarray]] | None = None
+        self._previous_z: tuple[np.ndarray, tuple[int, ...], np.ndarray] | None = None
+        """The own z, the neighbours and their z (n, d, K) of the last request."""
 
     def clear(self) -> None:
         """Nobody holds a copy of the agent: no consensus block, no multipliers."""
@@ -115,8 +137,7 @@ class ConsensusMultipliers:
     def update(self, request: LocalRequest, last: LocalResult | None, last_neighbours: tuple[int, ...]) -> None:
         """The multiplier step for the consensus of ``request``, given the agent's ``last`` answer
         (to ``last_neighbours``); at a new step, the carry-over instead."""
-        previous_z, self._previous_z = self._previous_z, (
-            request.z_own, dict(zip(request.neighbours, request.z_neighbours, strict=True)))
+        previous_z, self._previous_z = self._previous_z, (request.z_own, request.neighbours, request.z_neighbours)
         if request.new_step or last is None:
             carry = request.carry + (False,) * (1 + len(request.neighbours) - len(request.carry))
             if self.own is not None:
@@ -127,17 +148,20 @@ class ConsensusMultipliers:
             }
             return
         rho, alpha = request.rho_previous, request.relaxation
-        own_before, copies_before = previous_z if previous_z is not None else (None, {})
+        own_before, neighbours_before, copies_before = previous_z if previous_z is not None else (None, (), None)
         self.own = (self.own if self.own is not None else 0.0) + (
             rho * request.owner_weight * (_relaxed(last.own, alpha, own_before) - request.z_own)
         )
-        sent: dict[int, int] = {}  # neighbour -> its (first) copy in ``last``
-        for slot, j in enumerate(last_neighbours):
-            sent.setdefault(j, slot)
-        for slot, j in enumerate(request.neighbours):
-            if j in sent:
-                previous = _relaxed(last.copies[sent[j]], alpha, copies_before.get(j))
-                self.copies[j] = self.copies.get(j, 0.0) + rho * (previous - request.z_neighbours[slot])
+        held, answers, z_now = _answered_copies(request, last, last_neighbours)
+        if not held:
+            return
+        if alpha != 1.0 and copies_before is not None:
+            known, before = matching_slots(held, neighbours_before)  # relaxed towards the z last sent, if any
+            answers = answers.copy()
+            answers[known] = alpha * answers[known] + (1.0 - alpha) * copies_before[before]
+        zero = np.zeros_like(request.z_own)
+        gamma = np.array([self.copies.get(j, zero) for j in held])  # 0.0 + step where none yet, as a sum with 0.0
+        self.copies.update(zip(held, gamma + rho * (answers - z_now), strict=True))
 
     def parameters(self, request: LocalRequest) -> dict[str, np.ndarray]:
         """The multiplier parameters of the local problem (``Y``, ``Y0``, ...); zero in a repair and a probe."""

@@ -7,8 +7,9 @@ solutions stay inside the agent.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -91,6 +92,17 @@ class LocalRequest:
         """Whether this is a repair's request: the neighbours' plans are pinned, no consensus."""
         return self.neighbour_plans is not None
 
+    def with_changes(self, **changes: Any) -> LocalRequest:
+        """This request with ``changes`` (field name -> value): what :func:`dataclasses.replace`
+        makes, the fields set as they are, without its per-field work (the class checks nothing
+        on construction), as the coordinator re-poses M requests every ADMM iteration."""
+        unknown = changes.keys() - self.__dict__.keys()
+        if unknown:
+            raise TypeError(f"LocalRequest has no fields {sorted(unknown)}")
+        request = object.__new__(LocalRequest)
+        request.__dict__.update(self.__dict__, **changes)
+        return request
+
 
 @dataclass(frozen=True)
 class LocalResult:
@@ -158,6 +170,10 @@ class StepRequests:
     """Agent and neighbours -> (the neighbours as an index array, the pairs' Delta, the neighbours'
     states): what every request of the agent with those neighbours in this step shares, made
     once (the coordinator asks M requests per ADMM iteration)."""
+    _posed: dict[CouplingGraph, tuple[list[LocalRequest], np.ndarray, list[int]]] = field(
+        default_factory=dict, init=False, repr=False)
+    """Graph -> the first requests of an ADMM iteration on it, every agent's neighbours in one
+    index array, and where each agent's part of it ends (:meth:`iteration`)."""
 
     def _neighbourhood(self, i: int, neighbours: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         key = (i, neighbours)
@@ -219,3 +235,24 @@ class StepRequests:
             plane_offsets=offsets,
             handover=self.config.deadline is None,
         )
+
+    def iteration(
+        self, graph: CouplingGraph, z: np.ndarray, rho: float, rho_previous: float, new_step: bool,
+        carry: Sequence[tuple[bool, ...]] | None = None,
+    ) -> list[LocalRequest]:
+        """Every agent's request of one ADMM iteration on ``graph``: :meth:`request` of agents 0 to
+        M - 1 (``carry``: each one's, at a new step). The first iteration on a graph poses them in
+        full; later ones change only what an iteration changes (the consensus and the penalty),
+        every neighbour's z gathered at once."""
+        posed = self._posed.get(graph)
+        if posed is None:
+            requests = [self.request(i, graph, z, rho, rho_previous, new_step, carry=carry[i] if carry else ())
+                        for i in range(len(z))]
+            index = np.array([j for n in graph.neighbours for j in n], int)
+            self._posed[graph] = (requests, index, np.cumsum([len(n) for n in graph.neighbours]).tolist())
+            return requests
+        first, index, ends = posed
+        gathered = z.take(index, axis=0)
+        return [request.with_changes(z_own=z[i], z_neighbours=gathered[start:end], rho=rho, rho_previous=rho_previous,
+                                     new_step=new_step, carry=carry[i] if carry else ())
+                for i, (request, start, end) in enumerate(zip(first, [0, *ends], ends, strict=False))]

@@ -276,19 +276,20 @@ class ADMMSolver:
         results: list[LocalResult] = []
         converged = False
         carry = carried_blocks(cfg.carry_multipliers, graph.neighbours, self.carryover)
+        blocks: Blocks | None = None
         for iteration in range(cfg.max_iter):
             if not self._clock.next_iteration():
                 break
             new = iteration == 0
-            results = self._solve([requests.request(i, graph, z, penalty.rho, penalty.previous, new,
-                                                    carry=carry[i] if new else ()) for i in range(M)])
-            for r in results:
-                agent_times[r.agent] += compute_time(r)
+            asked = requests.iteration(graph, z, penalty.rho, penalty.previous, new, carry if new else None)
+            results = self._solve(asked)
+            # in the answers' order, as a loop adding each agent's time would
+            np.add.at(agent_times, [r.agent for r in results], [compute_time(r) for r in results])
             failures += sum(not r.success for r in results)
-            blocks = Blocks.of(results, graph.neighbours)
+            blocks = Blocks.of(results, graph.neighbours, blocks.layout if blocks is not None else None)
             z_new, weights = average(results, graph.neighbours, cfg.owner_weight, cfg.relaxation, z, blocks)
             r_norm = primal_residual(results, graph.neighbours, z_new, blocks)
-            s_norm = dual_residual(z_new - z, weights, graph.neighbours, penalty.rho)
+            s_norm = dual_residual(z_new - z, weights, graph.neighbours, penalty.rho, blocks)
             z = z_new
             converged = consensus_met(r_norm, s_norm, penalty.rho, cfg)
             residuals.add(r_norm, s_norm, penalty.rho)
