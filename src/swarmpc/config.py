@@ -684,11 +684,12 @@ class QPOptions(_Frozen):
         "whose answer is taken instead of handing the call to IPOPT.",
     )
     handover_slack: float | None = Field(
-        default=1e-4, ge=0,
+        default=None, ge=0,
         description="With `elastic`: a failed repair call goes to IPOPT (when the step allows a hand-over) only "
-        "if its soft plan falls short of d_min by at most this [m]; a call whose soft plan needs more has no "
-        "feasible plan near it, and IPOPT mostly spends 50-400 ms to say so. `null`: every failed call is "
-        "handed over.",
+        "if its soft plan falls short of d_min by at most this [m]. `null`: every call the elastic phase does not "
+        "answer is handed over. 1e-4 cut a 64-agent swarm's critical-path p99 by more than half, but IPOPT's "
+        "answers to the calls it then keeps are detours that get the swarm home sooner: without them most "
+        "swarms took 15-25 % longer to their goals.",
     )
 
 

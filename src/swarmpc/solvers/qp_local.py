@@ -155,9 +155,10 @@ class QPLocalOptions:
     """A hard repair call whose certificate loops fail is solved again with soft pair rows from
     its last plan (the least-violating plan, always feasible); a plan that needs no slack starts
     the hard loop again, whose answer is taken."""
-    handover_slack: float | None = 1e-4
+    handover_slack: float | None = None
     """[m] With ``elastic``: a failed repair call is handed to IPOPT only when its soft plan falls
-    short of d_min by at most this; None: every failed call is handed over (when allowed)."""
+    short of d_min by at most this; None: every call the elastic phase does not answer is handed
+    over (when the step allows it)."""
 
     @classmethod
     def from_config(cls, config: QPOptions) -> QPLocalOptions:

@@ -155,9 +155,12 @@ class QPLocalSolverLadder:
         """The QP path's answer if it succeeds or proves the problem infeasible, else IPOPT's
         (:class:`FallbackSolution`); with ``handover`` False the QP path's answer, failed or not.
         With ``elastic`` (a hard repair call), a failed call is first solved again with soft pair
-        rows (:meth:`_elastic`); a call whose soft plan falls short of d_min by more than
-        ``handover_slack`` has no feasible plan near it and is not handed to IPOPT, which mostly
-        spends 50-400 ms to find none either.
+        rows (:meth:`_elastic`), whose answer, when the soft plan needs no slack, saves the hand-over.
+        With a ``handover_slack``, a call whose soft plan falls short of d_min by more has no
+        feasible plan near it and is not handed over either: IPOPT mostly spends 50-400 ms to find
+        none, but the few it finds are detours that get a crowded swarm home sooner, so by
+        default (None) every call the phase does not answer is handed over
+        (evidence: docs/lab/admm.md#elastic-repair).
         ``restarts``: see :meth:`swarmpc.solvers.qp_local.SequentialLocalQP.solve`. A call of an
         ADMM iteration (copies free) takes ``iteration_rounds`` certificate rounds at most, a
         repair call (copies pinned) ``max_rounds``."""
@@ -178,13 +181,21 @@ class QPLocalSolverLadder:
         far = slack is not None and options.handover_slack is not None and slack > options.handover_slack
         if not handover or far:
             return answer
+        return self._handover(params, guess, fixed, answer, copies, planes)
+
+    def _handover(
+        self, params: dict[str, Any], guess: dict[str, np.ndarray] | np.ndarray, fixed: dict[str, Any] | None,
+        failed: NLPSolution, copies: int, planes: int,
+    ) -> FallbackSolution:
+        """The call the QP path ``failed`` solved by IPOPT from the same start."""
+        pinned = pins_copies(fixed)
         start = self.qp.guess_blocks(params, guess, copies=copies, planes=planes, pinned=pinned)
         reference = self.ipopt.solve(params, start, fixed, copies=copies, planes=planes)
         values = {f.name: getattr(reference, f.name) for f in fields(NLPSolution)}
-        values.update(lam_x=np.zeros(0), lam_g=np.zeros(0), solve_time=answer.solve_time + reference.solve_time)
+        values.update(lam_x=np.zeros(0), lam_g=np.zeros(0), solve_time=failed.solve_time + reference.solve_time)
         if reference.success:
             values["x_vec"] = self.qp.solution_vector(reference.x, params, copies=copies, planes=planes, pinned=pinned)
-        return FallbackSolution(**values, qp_status=answer.status)
+        return FallbackSolution(**values, qp_status=failed.status)
 
     def _elastic(
         self, params: dict[str, Any], failed: NLPSolution, fixed: dict[str, Any], copies: int, planes: int,
