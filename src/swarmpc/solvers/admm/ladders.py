@@ -158,9 +158,9 @@ class QPLocalSolverLadder:
         rows (:meth:`_elastic`), whose answer, when the soft plan needs no slack, saves the hand-over.
         With a ``handover_slack``, a call whose soft plan falls short of d_min by more has no
         feasible plan near it and is not handed over either: IPOPT mostly spends 50-400 ms to find
-        none, but the few it finds are detours that get a crowded swarm home sooner, so by
-        default (None) every call the phase does not answer is handed over
-        (evidence: docs/lab/admm.md#elastic-repair).
+        none, and the few plans it finds are costly detours. Without them a swarm's closed loop
+        changed in ways ten runs could not tell from chance but one, so by default (None) every
+        call the phase does not answer is handed over (evidence: docs/lab/admm.md#elastic-repair).
         ``restarts``: see :meth:`swarmpc.solvers.qp_local.SequentialLocalQP.solve`. A call of an
         ADMM iteration (copies free) takes ``iteration_rounds`` certificate rounds at most, a
         repair call (copies pinned) ``max_rounds``."""
