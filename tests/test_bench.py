@@ -362,6 +362,18 @@ def test_settings_reach_every_case_and_survive_the_report(tmp_path):
     assert loaded.case.settings == settings and loaded == written
 
 
+def test_a_null_setting_sets_null():
+    """``--set KEY=null`` is a value: it sets the field to null instead of being dropped as an
+    option not given (the scenario's non-null value would otherwise fly unnoticed)."""
+    paper = builtin_scenario("paper-2d")
+    assert paper.deadlock.keep_right_deg == 0.0
+    assert paper.with_settings({"deadlock.keep_right_deg": None}).deadlock.keep_right_deg is None
+    assert paper.with_updates(**{"deadlock.keep_right_deg": None}).deadlock.keep_right_deg == 0.0  # not given
+    (case,) = plan_cases(["random"], [4], 1, "serial", None, 60.0, 0, locals_=("qp",),
+                         settings=(("solver.qp.handover_slack", 1e-4), ("solver.qp.handover_slack", None)))
+    assert case.scenario().solver.qp.handover_slack is None  # the last value, null, as given
+
+
 def test_run_bench_states_its_settings_and_refuses_bad_ones_before_running(tmp_path):
     ran: list[BenchCase] = []
 

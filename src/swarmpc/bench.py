@@ -122,7 +122,8 @@ class BenchCase:
         else:
             scn = builtin_scenario("circle", agents=self.agents, dim=2 if self.family == "circle" else 3)
             scn = scn.with_updates(**{"limits.accel": 1.0, "stop.goal_tolerance": 0.1, "seed": self.seed})
-        updates: dict[str, Any] = {**dict(self.settings), "solver.method": self.method}
+        scn = scn.with_settings(dict(self.settings))  # a user's KEY=null sets null
+        updates: dict[str, Any] = {"solver.method": self.method}
         if self.max_steps is not None:
             updates["stop.max_steps"] = self.max_steps
         if self.plane_margin is not None and self.method == "admm":

@@ -1366,11 +1366,15 @@ class Scenario(_Frozen):
         return np.asarray(value, float)
 
     def with_updates(self, **changes: Any) -> Scenario:
-        """A validated copy with top-level fields (or dotted ``solver.rho`` style keys) changed."""
+        """A validated copy with top-level fields (or dotted ``solver.rho`` style keys) changed; a
+        None value leaves its field as it is (an option not given)."""
+        return self.with_settings({key: value for key, value in changes.items() if value is not None})
+
+    def with_settings(self, settings: typing.Mapping[str, Any]) -> Scenario:
+        """A validated copy with dotted keys set to ``settings``' values, None included (a
+        user's ``KEY=null`` sets the field to null)."""
         data = self.model_dump()
-        for key, value in changes.items():
-            if value is None:
-                continue
+        for key, value in settings.items():
             target = data
             parts = key.split(".")
             for part in parts[:-1]:
