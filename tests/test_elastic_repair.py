@@ -125,3 +125,12 @@ def test_no_elastic_phase_in_the_iterations_or_the_soft_form():
     iteration = ladder(s)
     iteration.solve(params, guess, copies=1)
     assert iteration._soft is None
+
+
+def test_no_elastic_phase_where_no_call_may_be_handed_over():
+    """Under a deadline (``handover`` False) a failed repair call goes without the phase, as
+    before it: the recorded call stays failed, and no soft problem is built."""
+    s, params, guess, fixed, copies = recorded_call()
+    deadline = ladder(s)
+    answer = deadline.solve(params, guess, fixed, copies=copies, handover=False)
+    assert not answer.success and deadline._soft is None

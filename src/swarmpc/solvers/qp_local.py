@@ -152,9 +152,10 @@ class QPLocalOptions:
     repair_solver: str = "piqp"
     """QP solver of the calls whose copies are pinned (the repair passes): "piqp" or "osqp"."""
     elastic: bool = True
-    """A hard repair call whose certificate loops fail is solved again with soft pair rows from
-    its last plan (the least-violating plan, always feasible); a plan that needs no slack starts
-    the hard loop again, whose answer is taken."""
+    """A hard repair call whose certificate loops fail, and that may be handed to IPOPT (no
+    deadline), is solved again with soft pair rows from its last plan (the least-violating plan,
+    always feasible); a plan that needs no slack starts the hard loop again, whose answer is
+    taken."""
     handover_slack: float | None = None
     """[m] With ``elastic``: a failed repair call is handed to IPOPT only when its soft plan falls
     short of d_min by at most this; None: every call the elastic phase does not answer is handed

@@ -154,8 +154,11 @@ class QPLocalSolverLadder:
     ) -> NLPSolution:
         """The QP path's answer if it succeeds or proves the problem infeasible, else IPOPT's
         (:class:`FallbackSolution`); with ``handover`` False the QP path's answer, failed or not.
-        With ``elastic`` (a hard repair call), a failed call is first solved again with soft pair
-        rows (:meth:`_elastic`), whose answer, when the soft plan needs no slack, saves the hand-over.
+        With ``elastic`` (a hard repair call that may be handed over), a failed call is first solved
+        again with soft pair rows (:meth:`_elastic`), whose answer, when the soft plan needs no
+        slack, saves the hand-over. A call that may not be handed over (a step under a deadline)
+        goes without the phase, as before it: under a 0.1 s deadline the phase's answers with no
+        hand-over behind them left a 64-agent swarm short of its goals in one of two runs.
         With a ``handover_slack``, a call whose soft plan falls short of d_min by more has no
         feasible plan near it and is not handed over either: IPOPT mostly spends 50-400 ms to find
         none, and the few plans it finds are costly detours. Without them a swarm's closed loop
@@ -172,7 +175,7 @@ class QPLocalSolverLadder:
         if answer.success or answer.status == PROVEN_INFEASIBLE:
             return answer
         slack = None
-        if pinned and options.elastic and self.qp.pair_collision == "hard":
+        if pinned and handover and options.elastic and self.qp.pair_collision == "hard":
             assert fixed is not None
             found, slack, spent = self._elastic(params, answer, fixed, copies, planes)
             answer = replace(answer, solve_time=answer.solve_time + spent)
